@@ -1,0 +1,37 @@
+"""Point classes used throughout streetcd: ASPRS LAS 1.4 codes where the standard has one,
+user-definable codes (64-255) for the street objects it does not name.
+
+Classification is stored per point as ``uint8``; rasters of classes use the same codes.
+"""
+
+from __future__ import annotations
+
+UNCLASSIFIED = 1
+GROUND = 2  # bare ground, sidewalks, verges
+VEGETATION = 5  # ASPRS "high vegetation": trees and hedges
+BUILDING = 6  # façades
+ROAD = 11  # ASPRS "road surface"
+POLE = 64  # street-light poles, sign posts
+SIGN = 65  # signs and boards (thin planar objects)
+RAILING = 66  # railings and fences
+FURNITURE = 67  # benches, bins
+CAR = 68  # parked vehicles
+PEDESTRIAN = 69  # never in a cleaned reference cloud; used by the synthetic ground truth
+
+NAMES: dict[int, str] = {
+    UNCLASSIFIED: "unclassified",
+    GROUND: "ground",
+    VEGETATION: "vegetation",
+    BUILDING: "building",
+    ROAD: "road",
+    POLE: "pole",
+    SIGN: "sign",
+    RAILING: "railing",
+    FURNITURE: "furniture",
+    CAR: "car",
+    PEDESTRIAN: "pedestrian",
+}
+
+# Classes whose raw change the detector down-weights (paper §3.3: "a small weight to the raw
+# changes that reside in the class of the trees and roads").
+LOW_WEIGHT = (VEGETATION, ROAD)

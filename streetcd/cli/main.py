@@ -1,0 +1,33 @@
+"""The ``streetcd`` command: a click group; each sub-command lives in its own module."""
+
+from __future__ import annotations
+
+import importlib
+
+import click
+
+from streetcd import __version__
+
+# (module, command attribute). Each module imports its heavy dependencies lazily so that
+# `streetcd --help` stays fast.
+COMMANDS = [
+    ("streetcd.cli.synth", "synth"),
+]
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="streetcd")
+def cli() -> None:
+    """Find what changed on a street: an older MLS point cloud against newer posed images."""
+
+
+for module_name, attr in COMMANDS:
+    cli.add_command(getattr(importlib.import_module(module_name), attr))
+
+
+def main() -> None:
+    cli()
+
+
+if __name__ == "__main__":
+    main()

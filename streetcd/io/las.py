@@ -1,0 +1,168 @@
+"""LAS/LAZ reading and writing with laspy (lazrs backend for LAZ).
+
+Coordinates are returned as local float64 metres relative to an ``origin`` (by default the
+file header's offset), so georeferenced values of 10⁵–10⁶ m never lose precision:
+``local = X_int · scale + (offset − origin)``.
+
+We write LAS 1.4, point format 7 (XYZ, intensity, 8-bit classification, GPS time, RGB) with the
+CRS as a WKT VLR (pyproj builds the WKT), scale 1 mm and an offset rounded to the kilometre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import laspy
+import numpy as np
+
+from streetcd.errors import CorruptFileError, InputError, MissingInputError
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """Points in a local frame.
+
+    xyz : (N, 3) float64, metres, ``X_crs − origin``.
+    origin : (3,) float64, metres in the CRS.
+    classification : (N,) uint8, codes of :mod:`streetcd.classes`.
+    intensity : (N,) uint16 or None.
+    rgb : (N, 3) uint16 or None (LAS colours are 16-bit).
+    gps_time : (N,) float64 or None, seconds.
+    crs : the CRS as ``"EPSG:XXXX"`` when it has an EPSG code, else WKT, or None.
+    """
+
+    xyz: np.ndarray
+    origin: np.ndarray
+    classification: np.ndarray
+    intensity: np.ndarray | None = None
+    rgb: np.ndarray | None = None
+    gps_time: np.ndarray | None = None
+    crs: str | None = None
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    def subset(self, mask: np.ndarray) -> PointCloud:
+        """The points where ``mask`` (N,) bool (or an index array) selects."""
+        def pick(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[mask]
+
+        return PointCloud(self.xyz[mask], self.origin, self.classification[mask],
+                          pick(self.intensity), pick(self.rgb), pick(self.gps_time), self.crs)
+
+
+def crs_string(crs: object) -> str:
+    """Normalise a pyproj CRS to ``"EPSG:XXXX"`` where it has an EPSG code, else its WKT."""
+    import pyproj
+
+    c = pyproj.CRS.from_user_input(crs)
+    code = c.to_epsg()
+    return f"EPSG:{code}" if code is not None else c.to_wkt()
+
+
+def header_crs(header: laspy.LasHeader, path: Path) -> str | None:
+    """The CRS a LAS header states (WKT or GeoTIFF keys), normalised, or None if it has none."""
+    try:
+        parsed = header.parse_crs()
+    except Exception as exc:  # laspy raises several types for a malformed CRS VLR
+        raise InputError(f"{path}: field 'CRS VLR' cannot be parsed: {exc}") from None
+    return None if parsed is None else crs_string(parsed)
+
+
+def write_las(
+    path: str | Path,
+    xyz: np.ndarray,
+    classification: np.ndarray,
+    *,
+    origin: np.ndarray | None = None,
+    intensity: np.ndarray | None = None,
+    rgb: np.ndarray | None = None,
+    gps_time: np.ndarray | None = None,
+    crs: str | None = None,
+    scale: float = 0.001,
+) -> Path:
+    """Write points to ``path`` (``.laz`` compresses with lazrs).
+
+    xyz : (N, 3) float64 metres, local coordinates relative to ``origin`` (CRS metres);
+        without ``origin`` they are CRS coordinates.
+    """
+    path = Path(path)
+    origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.all(np.isfinite(xyz)):
+        raise InputError(f"{path}: xyz must be finite (N, 3), got shape {xyz.shape}")
+    header = laspy.LasHeader(point_format=7, version="1.4")
+    header.scales = np.array([scale, scale, scale])
+    lo = xyz.min(axis=0) + origin if len(xyz) else origin
+    header.offsets = np.floor(lo / 1000.0) * 1000.0
+    if crs is not None:
+        import pyproj
+
+        header.add_crs(pyproj.CRS.from_user_input(crs))
+    las = laspy.LasData(header)
+    # Integer coordinates computed from local values: (xyz + origin − offset) / scale,
+    # with origin − offset folded first so that no large number meets a small one in float32.
+    shift = origin - header.offsets
+    ints = np.round((xyz + shift) / scale).astype(np.int64)
+    las.X, las.Y, las.Z = ints[:, 0], ints[:, 1], ints[:, 2]
+    las.classification = np.asarray(classification, dtype=np.uint8)
+    if intensity is not None:
+        las.intensity = np.asarray(intensity, dtype=np.uint16)
+    if gps_time is not None:
+        las.gps_time = np.asarray(gps_time, dtype=np.float64)
+    if rgb is not None:
+        rgb = np.asarray(rgb, dtype=np.uint16)
+        las.red, las.green, las.blue = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    las.write(tmp)
+    tmp.replace(path)  # atomic: a reader never sees a half-written file
+    return path
+
+
+def _points_to_cloud(points: laspy.ScaleAwarePointRecord, header: laspy.LasHeader,
+                     origin: np.ndarray, crs: str | None) -> PointCloud:
+    shift = np.asarray(header.offsets, dtype=np.float64) - origin
+    scales = np.asarray(header.scales, dtype=np.float64)
+    xyz = np.column_stack([
+        np.asarray(points.X, dtype=np.float64) * scales[0] + shift[0],
+        np.asarray(points.Y, dtype=np.float64) * scales[1] + shift[1],
+        np.asarray(points.Z, dtype=np.float64) * scales[2] + shift[2],
+    ])
+    names = set(points.point_format.dimension_names)
+    rgb = None
+    if {"red", "green", "blue"} <= names:
+        rgb = np.column_stack([points.red, points.green, points.blue]).astype(np.uint16)
+    return PointCloud(
+        xyz=xyz,
+        origin=origin,
+        classification=np.asarray(points.classification, dtype=np.uint8),
+        intensity=np.asarray(points.intensity, dtype=np.uint16) if "intensity" in names else None,
+        rgb=rgb,
+        gps_time=np.asarray(points.gps_time, dtype=np.float64) if "gps_time" in names else None,
+        crs=crs,
+    )
+
+
+def read_las(path: str | Path, origin: np.ndarray | None = None) -> PointCloud:
+    """Read a whole LAS/LAZ file into a :class:`PointCloud` (local to ``origin``, default the
+    header offset). For files larger than memory use :func:`iter_las_chunks`."""
+    path = Path(path)
+    if not path.exists():
+        raise MissingInputError(f"point cloud file not found: {path}")
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+            crs = header_crs(header, path)
+            org = np.asarray(header.offsets if origin is None else origin, dtype=np.float64)
+            points = reader.read_points(header.point_count)
+    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
+        raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ: {exc}") from None
+    if len(points) != header.point_count:
+        raise CorruptFileError(f"{path}: truncated: header says {header.point_count} points, "
+                               f"read {len(points)}")
+    cloud = _points_to_cloud(points, header, org, crs)
+    if not np.all(np.isfinite(cloud.xyz)):
+        raise InputError(f"{path}: field 'X/Y/Z' has non-finite coordinates")
+    return cloud
