@@ -1,0 +1,208 @@
+"""Block and weighted-window z-buffers (paper §3.2, eq. 1–3) on synthetic scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from streetcd.camera import Intrinsics, look_at, project
+from streetcd.errors import InputError
+from streetcd.params import ZBufferParams
+from streetcd.zbuffer import block_zbuffer, project_cloud, weighted_zbuffer
+
+W, H, F = 400, 300, 400.0
+INTR = Intrinsics(W, H, F, F, (W - 1) / 2, (H - 1) / 2)
+FRONT_RGB, BACK_RGB = np.array([200, 60, 40]), np.array([60, 120, 200])
+
+
+def _brute_block(uv, depth, shape, w):
+    """Eq. 1 by a dictionary: per cell the smallest depth, ties to the lower index."""
+    best: dict[tuple[int, int], int] = {}
+    for i, ((u, v), z) in enumerate(zip(uv, depth, strict=True)):
+        if not (np.isfinite(u) and np.isfinite(v) and np.isfinite(z) and z > 0):
+            continue
+        col, row = int(np.floor(u + 0.5)), int(np.floor(v + 0.5))
+        if not (0 <= col < shape[1] and 0 <= row < shape[0]):
+            continue
+        key = (row // w, col // w)
+        if key not in best or z < depth[best[key]]:
+            best[key] = i
+    return np.array(sorted(best.values()), dtype=np.int64)
+
+
+@pytest.mark.parametrize("w", [1, 3, 5, 10])
+def test_block_zbuffer_equals_brute_force(w):
+    rng = np.random.default_rng(7)
+    n = 3000
+    uv = rng.uniform(-3, [63, 43], (n, 2))  # some points fall outside the 60×40 image
+    depth = rng.uniform(0.5, 20, n).round(1)  # rounding makes ties
+    uv[::97] = np.nan
+    depth[::89] = -1.0
+    kept = block_zbuffer(uv, depth, (40, 60), w)
+    np.testing.assert_array_equal(kept, _brute_block(uv, depth, (40, 60), w))
+
+
+def test_block_zbuffer_keeps_one_point_per_cell_the_nearest():
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(-0.5, 49.4, (5000, 2))
+    depth = rng.uniform(1, 10, 5000)
+    kept = block_zbuffer(uv, depth, (50, 50), 5)
+    cells = (np.floor(uv[:, 1] + 0.5) // 5) * 10 + np.floor(uv[:, 0] + 0.5) // 5
+    assert len(np.unique(cells[kept])) == len(kept) == 100  # every cell occupied, once
+    for c in range(100):
+        members = np.flatnonzero(cells == c)
+        assert depth[kept[cells[kept] == c][0]] == depth[members].min()
+
+
+def test_block_zbuffer_assigns_points_to_the_pixel_that_contains_them():
+    # u = 4.49 is in pixel 4 (cell 0 for w = 5), u = 4.5 in pixel 5 (cell 1)
+    uv = np.array([[4.49, 0.0], [4.5, 0.0], [0.0, 0.0]])
+    kept = block_zbuffer(uv, np.array([1.0, 1.0, 2.0]), (5, 10), 5)
+    np.testing.assert_array_equal(kept, [0, 1])
+
+
+def _fence_scene(rng, uniform_image=False):
+    """The paper's Fig. 2 setting: a fence of 1 m bars with 0.4 m gaps 8 m in front of the
+    camera, a wall 6 m behind it. Front points are 6 px apart, sparser than the 5 px block, so
+    BWZB(5) lets wall points through the interspaces; the image shows the bars' colour where
+    they cover the wall and the wall's colour in the gaps.
+
+    Returns projected points, image, is_back, occluded (back points hidden by a bar).
+    """
+    pose = look_at([0, -8, 0], [0, 0, 0])
+
+    def on_bar(x):
+        return (np.mod(x, 1.4) < 1.0) & (np.abs(x) < 4.5)
+
+    gx, gz = np.meshgrid(np.arange(-4.5, 4.5, 0.12), np.arange(-3.2, 3.2, 0.12))
+    front = np.column_stack([gx.ravel(), np.zeros(gx.size), gz.ravel()])
+    front[:, [0, 2]] += rng.uniform(-0.02, 0.02, (len(front), 2))
+    front = front[on_bar(front[:, 0])]
+    bx, bz = np.meshgrid(np.arange(-7.5, 7.5, 0.05), np.arange(-5.5, 5.5, 0.05))
+    back = np.column_stack([bx.ravel(), np.full(bx.size, 6.0), bz.ravel()])
+    xyz = np.vstack([front, back])
+    is_back = np.r_[np.zeros(len(front), bool), np.ones(len(back), bool)]
+    # a wall point is hidden where its ray crosses the fence plane (depth 8 of 14) on a bar
+    xf, zf = back[:, 0] * 8 / 14, back[:, 2] * 8 / 14
+    occluded = np.r_[np.zeros(len(front), bool), on_bar(xf) & (np.abs(zf + 0.06) < 3.26)]
+
+    v, u = np.mgrid[0:H, 0:W]
+    xpix, zpix = (u - INTR.cx) / F * 8, -(v - INTR.cy) / F * 8
+    bars = on_bar(xpix) & (zpix > -3.22) & (zpix < 3.22)
+    image = np.where(bars[..., None], FRONT_RGB, BACK_RGB) + rng.integers(-1, 2, (H, W, 3))
+    if uniform_image:
+        image[:] = FRONT_RGB
+    points = project_cloud(xyz, np.zeros(len(xyz), np.uint8), INTR, pose, 60.0)
+    return points, image.astype(np.uint8), is_back[points.index], occluded[points.index]
+
+
+@pytest.mark.parametrize("focal_px", [None, F], ids=["paper", "metric"])
+def test_weighted_zbuffer_removes_back_face_points_and_keeps_front_points(focal_px):
+    points, image, is_back, occluded = _fence_scene(np.random.default_rng(1))
+    b5 = block_zbuffer(points.uv, points.depth, (H, W), 5)
+    b10 = block_zbuffer(points.uv, points.depth, (H, W), 10)
+    ww = weighted_zbuffer(points.uv, points.depth, image, ZBufferParams(), focal_px=focal_px)
+    assert set(ww) <= set(b5)
+    assert occluded[b5].sum() > 500  # the scene does put wall points through the fence
+    assert occluded[ww].sum() <= 0.1 * occluded[b5].sum()  # ≥ 90 % of them removed
+    assert (~is_back[ww]).sum() > (~is_back[b10]).sum()  # more fence points than BWZB w = 10
+    assert (~is_back[ww]).sum() == (~is_back[b5]).sum()  # a flat fence loses no point
+    visible_wall = is_back & ~occluded
+    assert visible_wall[ww].sum() >= 0.95 * visible_wall[b5].sum()  # seen through the gaps
+
+
+def test_weighted_zbuffer_uses_the_image_colour_at_depth_edges():
+    # With a uniform image eq. 2 cannot tell the gaps from the bars: wall points seen through
+    # the gaps next to a bar are then erased too.
+    rng = np.random.default_rng(1)
+    points, image, is_back, occluded = _fence_scene(rng)
+    points_u, image_u, _, _ = _fence_scene(np.random.default_rng(1), uniform_image=True)
+    visible_wall = is_back & ~occluded
+    with_colour = visible_wall[weighted_zbuffer(points.uv, points.depth, image, ZBufferParams())]
+    without = visible_wall[weighted_zbuffer(points_u.uv, points_u.depth, image_u, ZBufferParams())]
+    assert without.sum() < 0.9 * with_colour.sum()
+
+
+@pytest.mark.parametrize("focal_px", [None, F], ids=["paper", "metric"])
+def test_weighted_zbuffer_keeps_ground_seen_at_a_grazing_angle(focal_px):
+    # Guards the surround rule of the metric variant: a metric angle alone erases a road seen
+    # from 1.6 m (its depth grows faster along the image than sideways).
+    rng = np.random.default_rng(5)
+    pose = look_at([0, 0, 1.6], [0, 10, 1.6])
+    n = 60000
+    ground = np.column_stack([rng.uniform(-6, 6, n), rng.uniform(4, 15, n), np.zeros(n)])
+    points = project_cloud(ground, np.full(n, 11, np.uint8), INTR, pose, 60.0)
+    image = np.full((H, W, 3), 90, np.uint8)
+    b5 = block_zbuffer(points.uv, points.depth, (H, W), 5)
+    ww = weighted_zbuffer(points.uv, points.depth, image, ZBufferParams(), focal_px=focal_px)
+    assert len(b5) > 1000
+    np.testing.assert_array_equal(ww, b5)
+
+
+def test_weighted_zbuffer_erases_a_point_behind_a_supporting_neighbour():
+    # Eq. 3 worked by hand: neighbour 3 px away and 4 m nearer → θ = atan(4/3) = 53° > 45°.
+    image = np.full((20, 20, 3), 50, np.uint8)
+    uv = np.array([[8.0, 10.0], [11.0, 10.0]])  # cells 1 and 2 of w = 5
+    assert list(weighted_zbuffer(uv, np.array([10.0, 6.0]), image, ZBufferParams())) == [1]
+    # 2 m nearer: θ = atan(2/3) = 34° < 45°, both stay
+    assert list(weighted_zbuffer(uv, np.array([10.0, 8.0]), image, ZBufferParams())) == [0, 1]
+    # different colour (Δc = 100 ≫ δ): no support, both stay
+    image[10, 11] = [150, 50, 50]
+    assert list(weighted_zbuffer(uv, np.array([10.0, 6.0]), image, ZBufferParams())) == [0, 1]
+    # outside the 15 px window (8 px > 7): both stay
+    uv2 = np.array([[8.0, 10.0], [16.0, 10.0]])
+    image[:] = 50
+    assert list(weighted_zbuffer(uv2, np.array([20.0, 6.0]), image, ZBufferParams())) == [0, 1]
+
+
+def test_metric_variant_erases_only_a_surrounded_point():
+    # Centre 10 m deep; nearer supporters (8 m) 4 px away: metric tan θ = 2 / (4 · 8 / 400) = 25.
+    image = np.full((40, 40, 3), 50, np.uint8)
+    centre = [[22.0, 22.0]]  # cell (4, 4) of w = 5; the others in cells of their own
+    left_right = [[18.0, 22.0], [26.0, 22.0]]  # opposite sides: gap 180° → surrounded
+    below = [[18.0, 26.0], [26.0, 26.0]]  # one side only: gap 270° → kept (a slope)
+    for others, erased in ((left_right, True), (below, False)):
+        uv = np.array(centre + others)
+        kept = weighted_zbuffer(
+            uv, np.array([10.0, 8.0, 8.0]), image, ZBufferParams(), focal_px=400.0
+        )
+        assert (0 not in kept) == erased
+        assert {1, 2} <= set(kept)
+
+
+def test_weighted_zbuffer_rejects_a_grey_image():
+    with pytest.raises(InputError, match="uint8 RGB"):
+        weighted_zbuffer(np.zeros((1, 2)), np.ones(1), np.zeros((5, 5), np.uint8), ZBufferParams())
+
+
+def test_project_cloud_keeps_points_in_front_in_range_and_in_the_image():
+    rng = np.random.default_rng(11)
+    pose = look_at([0, 0, 0], [0, 10, 0])
+    xyz = rng.uniform([-30, -30, -30], [30, 80, 30], (20000, 3))
+    classes = rng.integers(1, 70, len(xyz)).astype(np.uint8)
+    pts = project_cloud(xyz, classes, INTR, pose, 50.0)
+    uv, depth = project(xyz, INTR, pose)
+    with np.errstate(invalid="ignore"):
+        expect = (
+            (depth > 0)
+            & (np.linalg.norm(xyz, axis=1) <= 50.0)
+            & (uv[:, 0] >= -0.5)
+            & (uv[:, 0] < W - 0.5)
+            & (uv[:, 1] >= -0.5)
+            & (uv[:, 1] < H - 0.5)
+        )
+    np.testing.assert_array_equal(pts.index, np.flatnonzero(expect))
+    np.testing.assert_allclose(pts.uv, uv[expect], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(pts.depth, depth[expect], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(pts.classes, classes[expect])
+
+
+def test_project_cloud_drops_points_folded_into_the_image_by_distortion():
+    # k1 < 0 makes r_d = r (1 + k1 r²) fall back towards the centre far outside the view.
+    intr = Intrinsics(W, H, F, F, (W - 1) / 2, (H - 1) / 2, dist=(-0.2, 0.0, 0.0, 0.0, 0.0))
+    pose = look_at([0, 0, 0], [0, 10, 0])
+    xyz = np.array([[0.0, 10.0, 0.0], [20.0, 10.0, 0.0]])  # x/z = 2 → x_d = 2 (1 − 0.8) = 0.4
+    uv, _ = project(xyz, intr, pose)
+    assert 0 <= uv[1, 0] < W  # the 63° off-axis point lands inside the 53° wide image
+    pts = project_cloud(xyz, np.zeros(2, np.uint8), intr, pose, 60.0)
+    np.testing.assert_array_equal(pts.index, [0])
