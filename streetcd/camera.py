@@ -20,6 +20,7 @@ Distortion follows OpenCV's model (Brown–Conrady), normalised coordinates x, y
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,7 +122,11 @@ class Pose:
         return Pose.from_center(self.R, self.center - np.asarray(origin, dtype=np.float64))
 
 
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> Pose:
+def look_at(
+    center: np.ndarray | Sequence[float],
+    target: np.ndarray | Sequence[float],
+    up: np.ndarray | Sequence[float] = (0.0, 0.0, 1.0),
+) -> Pose:
     """Pose of a camera at ``center`` looking at ``target``, image "up" towards ``up``.
 
     All arguments (3,) metres in the world frame; ``up`` must not be parallel to the view.

@@ -10,7 +10,9 @@ CRS as a WKT VLR (pyproj builds the WKT), scale 1 mm and an offset rounded to th
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
+from datetime import date
 from pathlib import Path
 
 import laspy
@@ -81,11 +83,13 @@ def write_las(
     gps_time: np.ndarray | None = None,
     crs: str | None = None,
     scale: float = 0.001,
+    creation_date: date | None = None,
 ) -> Path:
     """Write points to ``path`` (``.laz`` compresses with lazrs).
 
     xyz : (N, 3) float64 metres, local coordinates relative to ``origin`` (CRS metres);
         without ``origin`` they are CRS coordinates.
+    creation_date : the header's creation day (default today); fix it for reproducible files.
     """
     path = Path(path)
     origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
@@ -94,6 +98,8 @@ def write_las(
         raise InputError(f"{path}: xyz must be finite (N, 3), got shape {xyz.shape}")
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.scales = np.array([scale, scale, scale])
+    if creation_date is not None:
+        header.creation_date = creation_date
     lo = xyz.min(axis=0) + origin if len(xyz) else origin
     header.offsets = np.floor(lo / 1000.0) * 1000.0
     if crs is not None:
@@ -166,3 +172,81 @@ def read_las(path: str | Path, origin: np.ndarray | None = None) -> PointCloud:
     if not np.all(np.isfinite(cloud.xyz)):
         raise InputError(f"{path}: field 'X/Y/Z' has non-finite coordinates")
     return cloud
+
+
+# --- chunked reading (files larger than memory) ------------------------------------------
+
+
+@dataclass(frozen=True)
+class LasInfo:
+    """What a LAS/LAZ header says, read without touching the points.
+
+    mins, maxs : (3,) float64, metres in the CRS (the header's bounding box).
+    offsets, scales : (3,) float64, the header's integer-coordinate transform.
+    """
+
+    path: Path
+    point_count: int
+    crs: str | None
+    mins: np.ndarray
+    maxs: np.ndarray
+    offsets: np.ndarray
+    scales: np.ndarray
+
+
+def las_info(path: str | Path) -> LasInfo:
+    """Read the header of ``path``; MissingInputError / CorruptFileError name the file."""
+    path = Path(path)
+    if not path.exists():
+        raise MissingInputError(f"point cloud file not found: {path}")
+    try:
+        with laspy.open(path) as reader:
+            h = reader.header
+            return LasInfo(path, int(h.point_count), header_crs(h, path),
+                           np.asarray(h.mins, dtype=np.float64), np.asarray(h.maxs, dtype=np.float64),
+                           np.asarray(h.offsets, dtype=np.float64),
+                           np.asarray(h.scales, dtype=np.float64))
+    except InputError:
+        raise
+    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
+        raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ: {exc}") from None
+
+
+def iter_las_chunks(path: str | Path, chunk_points: int = 1_000_000,
+                    origin: np.ndarray | None = None) -> Iterator[PointCloud]:
+    """Stream ``path`` as :class:`PointCloud` chunks of at most ``chunk_points`` points.
+
+    Coordinates are local to ``origin`` (3,) float64 CRS metres (default the header offset),
+    exactly as :func:`read_las` computes them, so the chunks concatenated equal the whole file.
+    Memory is one chunk. A truncated file raises CorruptFileError once the missing part is
+    reached (earlier chunks have been yielded); non-finite coordinates raise InputError.
+    """
+    path = Path(path)
+    if chunk_points < 1:
+        raise InputError(f"chunk_points must be >= 1, got {chunk_points}")
+    if not path.exists():
+        raise MissingInputError(f"point cloud file not found: {path}")
+    seen = 0
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+            crs = header_crs(header, path)
+            org = np.asarray(header.offsets if origin is None else origin, dtype=np.float64)
+            for points in reader.chunk_iterator(chunk_points):
+                if len(points) == 0:
+                    break
+                seen += len(points)
+                cloud = _points_to_cloud(points, header, org, crs)
+                if not np.all(np.isfinite(cloud.xyz)):
+                    raise InputError(f"{path}: field 'X/Y/Z' has non-finite coordinates "
+                                     f"(header scales {list(header.scales)}, "
+                                     f"offsets {list(header.offsets)})")
+                yield cloud
+            expected = int(header.point_count)
+    except InputError:
+        raise
+    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
+        raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ after {seen} points: "
+                               f"{exc}") from None
+    if seen != expected:
+        raise CorruptFileError(f"{path}: truncated: header says {expected} points, read {seen}")

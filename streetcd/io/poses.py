@@ -321,7 +321,7 @@ def read_opk_csv(path: str | Path, image_dir: str | Path | None = None) -> PoseS
     missing = [f for f in OPK_FIELDS[:-1] if f not in (reader.fieldnames or [])]
     if missing:
         raise InputError(f"{path}: header lacks field(s) {', '.join(missing)}")
-    views = []
+    views: list[View] = []
     for number, row in enumerate(reader, start=2 + sum(1 for x in lines if x.startswith("#"))):
         name = (row.get("name") or "").strip()
         if not name:
