@@ -119,7 +119,13 @@ class Pose:
 
         Used to move a georeferenced pose into a local frame: ``X_local = X - origin``.
         """
-        return Pose.from_center(self.R, self.center - np.asarray(origin, dtype=np.float64))
+        # R is unchanged and already validated: skip __post_init__ (planning shifts every
+        # view many times, and the orthonormality check dominated that).
+        center = self.center - np.asarray(origin, dtype=np.float64)
+        pose = object.__new__(Pose)
+        object.__setattr__(pose, "R", self.R)
+        object.__setattr__(pose, "t", -self.R @ center)
+        return pose
 
 
 def look_at(

@@ -73,6 +73,9 @@ class CorrelateParams:
     stretch_percentiles: tuple[float, float] = (1.0, 99.0)  # histogram stretching per view
     low_weight_classes: tuple[int, ...] = classes.LOW_WEIGHT  # trees and roads
     low_class_weight: float = 0.2  # "a small weight" for those classes
+    # colour tolerance for registration error: p's colour is compared with the range of q's
+    # colours within this radius (px at REFERENCE_WIDTH_PX; 0 = the paper's pixel difference)
+    registration_tolerance_px: float = 4.0  # tuned, docs/TUNING.md (2 px at 1920 wide)
 
     def __post_init__(self) -> None:
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")
@@ -81,6 +84,8 @@ class CorrelateParams:
                "0 <= lo < hi <= 100")
         _check(0 <= self.low_class_weight <= 1, "low_class_weight", self.low_class_weight,
                "in [0, 1]")
+        _check(self.registration_tolerance_px >= 0, "registration_tolerance_px",
+               self.registration_tolerance_px, ">= 0")
 
 
 @dataclass(frozen=True)
@@ -89,8 +94,9 @@ class GraphCutParams:
 
     a: float = 45.0  # steepness of the S-curve of eq. 7
     b: float = 11.0  # shift of the S-curve of eq. 7
-    beta: float = 1.0  # β of eq. 6, weight of the smoothness term
+    beta: float = 3.0  # β of eq. 6, weight of the smoothness term (tuned, docs/TUNING.md)
     superpixel_cell_px: float = 50.0  # SLIC cell size S at REFERENCE_WIDTH_PX
+    superpixel_work_cell_px: float = 12.0  # SLIC runs downscaled to about this cell size
     compactness: float = 20.0  # M/S of eq. 10
     class_penalty: float = 400.0  # α of eq. 11
     color_scale: float = 10.0  # colour distance (8-bit RGB) that makes exp(−·) = 1/e, eq. 8
@@ -104,6 +110,8 @@ class GraphCutParams:
         _check(self.a > 0, "a", self.a, "> 0")
         _check(self.beta >= 0, "beta", self.beta, ">= 0")
         _check(self.superpixel_cell_px >= 2, "superpixel_cell_px", self.superpixel_cell_px, ">= 2")
+        _check(self.superpixel_work_cell_px >= 2, "superpixel_work_cell_px",
+               self.superpixel_work_cell_px, ">= 2")
         _check(self.compactness > 0, "compactness", self.compactness, "> 0")
         _check(self.class_penalty >= 0, "class_penalty", self.class_penalty, ">= 0")
         _check(self.color_scale > 0, "color_scale", self.color_scale, "> 0")

@@ -1,0 +1,201 @@
+"""Per-view detector time, step by step, and peak memory, on ONE core.
+
+    .venv/bin/python benchmarks/per_view.py [--sizes 1920x1080,4000x3000] [--repeat 3]
+
+For each image size a small synthetic street (4 images) is generated once and cached under
+``out/bench-scenes``; one middle view with 3 neighbours is detected ``--repeat`` times after a
+warm-up (numba compilation, caches), and the median of every step is printed:
+
+* project + z-buffer (eq. 1–3) and surface (triangulation, rasters) for the view and its
+  3 neighbours, as :func:`streetcd.detect.detect_view` does them;
+* correlate: histogram stretching of the 4 images and the raw change (eq. 4–5);
+* superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
+* total: :func:`detect_view` end to end (its own run, not the sum).
+
+Baseline in the same run: scikit-image ``slic`` on the full-resolution image with the same
+number of segments, against the detector's superpixel path (SLIC at a working resolution).
+Goal: ≤ 0.6 s per 2 MP view, ≤ 3 s per 12 MP view, ≤ 2 GB peak.
+
+Peak memory is measured in a fresh child process per size: ``ru_maxrss`` after loading the
+scene (cloud and 4 images) and after the detection, so the detection's own share shows.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"  # before numpy / numba are imported
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+cv2.setNumThreads(1)
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "out" / "bench-scenes"
+STEPS = ("project_zbuffer", "surface", "correlate", "superpixels", "graph_cut", "sum_of_steps",
+         "total")
+
+
+def scene_for(size: tuple[int, int]) -> Path:
+    from streetcd.evaluate import ensure_scene
+
+    return ensure_scene(SCENES, seed=0, n_images=4, size=size)
+
+
+def _setup(size: tuple[int, int]):
+    from streetcd.evaluate import load_scene, read_image
+    from streetcd.neighbours import select_neighbours
+    from streetcd.params import load_params
+
+    scene = load_scene(scene_for(size))
+    params = load_params(ROOT / "configs" / "default.yaml"
+                         if (ROOT / "configs" / "default.yaml").exists() else None)
+    view = scene.views[len(scene.views) // 2]
+    nbs = select_neighbours(view, scene.views, n=3)
+    image = read_image(Path(view.image))
+    neighbours = [(read_image(Path(v.image)), v) for v in nbs]
+    return scene, params, view, image, neighbours
+
+
+def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
+    """One detection split into the paper's steps (the same calls as detect_view)."""
+    from streetcd.correlate import Neighbour, stretch_histogram
+    from streetcd.detect import _raw_change_at_cell_scale
+    from streetcd.graphcut import cut_changes, node_energy, superpixels
+    from streetcd.surface import view_surface
+    from streetcd.zbuffer import project_cloud, weighted_zbuffer
+
+    t: dict[str, float] = dict.fromkeys(STEPS[:5], 0.0)
+    cloud = scene.cloud
+    surfaces = []
+    for img, v in [(image, view), *neighbours]:
+        local = v.local(cloud.origin)
+        t0 = time.perf_counter()
+        pts = project_cloud(cloud.xyz, cloud.classification, local.intrinsics, local.pose,
+                            params.max_range_m)
+        kept = pts.take(weighted_zbuffer(pts.uv, pts.depth, img, params.zbuffer))
+        t1 = time.perf_counter()
+        surf = view_surface(kept.uv, kept.depth, kept.classes, img.shape[:2], params.surface,
+                            cell_px=params.zbuffer.block_window_px)
+        t2 = time.perf_counter()
+        t["project_zbuffer"] += t1 - t0
+        t["surface"] += t2 - t1
+        surfaces.append((surf, local))
+    t0 = time.perf_counter()
+    pct = params.correlate.stretch_percentiles
+    stretched = stretch_histogram(image, pct)
+    nbs = [Neighbour(stretch_histogram(img, pct), s.depth, loc.intrinsics, loc.pose)
+           for (img, _), (s, loc) in zip(neighbours, surfaces[1:], strict=True)]
+    surf, local = surfaces[0]
+    change, _ = _raw_change_at_cell_scale(stretched, surf, local, nbs, params)  # as detect_view
+    t1 = time.perf_counter()
+    labels = superpixels(stretched, surf.classes, params.graphcut)
+    t2 = time.perf_counter()
+    energy = node_energy(change, params.graphcut.a, params.graphcut.b)
+    cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
+    t3 = time.perf_counter()
+    t["correlate"] = t1 - t0
+    t["superpixels"] = t2 - t1
+    t["graph_cut"] = t3 - t2
+    t["sum_of_steps"] = sum(t[s] for s in STEPS[:5])
+    return t
+
+
+def baseline_slic_once(image: np.ndarray, params) -> float:
+    """scikit-image SLIC at full resolution, as many segments as the detector's cells."""
+    from skimage.segmentation import slic
+
+    from streetcd.params import scale_px
+
+    h, w = image.shape[:2]
+    cell = scale_px(params.graphcut.superpixel_cell_px, w, minimum=2.0)
+    t0 = time.perf_counter()
+    slic(image, n_segments=max(1, round(h * w / cell**2)), compactness=params.graphcut.compactness,
+         start_label=0)
+    return time.perf_counter() - t0
+
+
+def run_size(size: tuple[int, int], repeat: int) -> dict:
+    """Timings (medians) and memory of one size; run in a fresh process."""
+    from streetcd.detect import detect_view
+
+    scene, params, view, image, neighbours = _setup(size)
+    rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MiB on Linux
+    # surfaces=None: build every surface afresh, as a worker does for a view it has not seen
+    detect_view(image, view, neighbours, scene.cloud, params, surfaces=None)  # warm-up
+    rss_detect = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    steps_once(scene, params, view, image, neighbours)
+    runs = [steps_once(scene, params, view, image, neighbours) for _ in range(repeat)]
+    totals = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        detect_view(image, view, neighbours, scene.cloud, params, surfaces=None)
+        totals.append(time.perf_counter() - t0)
+    out = {s: statistics.median(r[s] for r in runs) for s in STEPS[:-1]}
+    out["total"] = statistics.median(totals)
+    baseline_slic_once(image, params)
+    out["baseline_skimage_slic_full_res"] = statistics.median(
+        baseline_slic_once(image, params) for _ in range(repeat))
+    return {"size": f"{size[0]}x{size[1]}", "megapixels": size[0] * size[1] / 1e6,
+            "points": len(scene.cloud), "seconds": out, "rss_loaded_mib": rss_loaded,
+            "rss_peak_mib": max(rss_detect,
+                                resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="1920x1080,4000x3000")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        w, h = map(int, args.child.split("x"))
+        print(json.dumps(run_size((w, h), args.repeat)))
+        return
+    results = []
+    for spec in args.sizes.split(","):
+        w, h = map(int, spec.split("x"))
+        scene_for((w, h))  # generate outside the measured child
+        proc = subprocess.run([sys.executable, __file__, "--child", spec, "--repeat",
+                               str(args.repeat)], capture_output=True, text=True, check=False)
+        if proc.returncode != 0:
+            sys.exit(f"benchmark at {spec} failed:\n{proc.stderr}")
+        results.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    print_table(results)
+
+
+def print_table(results: list[dict]) -> None:
+    names = [*STEPS, "baseline_skimage_slic_full_res"]
+    head = f"{'step (median s, 1 core)':<34}" + "".join(f"{r['size']:>14}" for r in results)
+    print(head)
+    print("-" * len(head))
+    for name in names:
+        print(f"{name:<34}" + "".join(f"{r['seconds'][name]:>14.3f}" for r in results))
+    print(f"{'points in cloud':<34}" + "".join(f"{r['points']:>14d}" for r in results))
+    print(f"{'peak RSS after scene load (MiB)':<34}"
+          + "".join(f"{r['rss_loaded_mib']:>14.0f}" for r in results))
+    print(f"{'peak RSS incl. detection (MiB)':<34}"
+          + "".join(f"{r['rss_peak_mib']:>14.0f}" for r in results))
+    goals = {"1920x1080": 0.6, "4000x3000": 3.0}
+    for r in results:
+        goal = goals.get(r["size"])
+        if goal is not None:
+            ok = r["seconds"]["total"] <= goal and r["rss_peak_mib"] <= 2048
+            print(f"{r['size']}: total {r['seconds']['total']:.2f} s (goal ≤ {goal} s), "
+                  f"peak {r['rss_peak_mib']:.0f} MiB (goal ≤ 2048): "
+                  f"{'meets' if ok else 'MISSES'} the goal")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,218 @@
+"""Re-projection and raw change (eq. 4–5) on a textured wall seen by cameras side by side.
+
+The wall y = 10 m is perpendicular to every camera's axis, so each camera's depth raster is
+exactly 10 m everywhere: the tests feed exact geometry and check the correlation alone.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from streetcd import classes
+from streetcd.camera import Intrinsics, backproject, look_at, pixel_grid, pixel_rays, project
+from streetcd.correlate import (
+    Neighbour,
+    camera_rays,
+    raw_change,
+    reproject,
+    stretch_histogram,
+)
+from streetcd.params import CorrelateParams
+
+INTR = Intrinsics(160, 120, 140.0, 140.0, 79.5, 59.5)
+WALL_Y = 10.0
+
+
+def wall_pose(x: float):
+    return look_at([x, 0.0, 1.5], [x, WALL_Y, 1.5])
+
+
+def wall_texture(points: np.ndarray) -> np.ndarray:
+    """(N, 3) world points on the wall → (N, 3) float colours in [40, 200]: random 0.5 m
+    panels (7 px here, so most pixels are not on a panel edge)."""
+    ix = np.floor(points[:, [0, 2]] / 0.5).astype(np.int64)
+    h = ((ix[:, 0] * 73856093) ^ (ix[:, 1] * 19349663)) * 2654435761 & 0xFFFFFFFF
+    rgb = np.column_stack([h & 255, (h >> 8) & 255, (h >> 16) & 255])
+    return 40.0 + rgb * (160.0 / 255.0)
+
+
+def render_wall(pose, intr=INTR) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, 3) uint8 image and (H, W) float32 depth of the wall (exact: depth = 10 m).
+
+    Rendered at 3× and area-averaged, as a camera integrates over its pixels: point-sampled
+    panel edges would alias, and resampling them would show as change.
+    """
+    fine = intr.scaled(3.0)
+    rays = pixel_rays(pixel_grid(fine.height, fine.width), fine) @ pose.R
+    t = (WALL_Y - pose.center[1]) / rays[:, 1]
+    points = pose.center + rays * t[:, None]
+    image = wall_texture(points).reshape(fine.height, fine.width, 3).astype(np.float32)
+    image = cv2.resize(image, (intr.width, intr.height), interpolation=cv2.INTER_AREA)
+    depth = np.full((intr.height, intr.width), WALL_Y, dtype=np.float32)
+    return image.round().astype(np.uint8), depth
+
+
+def neighbour(x: float, gain: float = 1.0) -> Neighbour:
+    image, depth = render_wall(wall_pose(x))
+    image = np.clip(image * gain, 0, 255).astype(np.uint8)
+    return Neighbour(stretch_histogram(image), depth, INTR, wall_pose(x))
+
+
+def test_stretch_cancels_per_channel_gain_and_offset():
+    rng = np.random.default_rng(0)
+    image = rng.integers(40, 180, size=(60, 80, 3)).astype(np.uint8)
+    other = np.clip(image * np.array([0.8, 1.1, 0.9]) + np.array([10, -20, 5]), 0, 255)
+    a = stretch_histogram(image, (1, 99))
+    b = stretch_histogram(other.round().astype(np.uint8), (1, 99))
+    assert a.dtype == np.float32 and a.min() >= 0 and a.max() <= 255
+    assert np.abs(a - b).max() < 3.5  # rounding of the gained uint8 image, ≤ 1 level × gain
+
+
+def test_camera_rays_with_distortion_match_exact_back_projection():
+    # interpolation error in pixels grows as step² / f: check at a street camera's f
+    intr = Intrinsics(1203, 301, 1000.0, 990.0, 600.3, 150.2, (-0.2, 0.05, 0.001, -0.002, 0.0))
+    rays = camera_rays(intr)
+    exact = pixel_rays(pixel_grid(intr.height, intr.width), intr)[:, :2]
+    assert rays.shape == (301, 1203, 2) and rays.dtype == np.float32
+    assert np.abs(rays.reshape(-1, 2) - exact).max() * intr.fx < 0.02  # pixels
+
+
+def test_reproject_equals_project_of_back_projected_points():
+    pose_p, pose_q = wall_pose(0.0), wall_pose(0.7)
+    depth = np.random.default_rng(1).uniform(4, 20, (INTR.height, INTR.width)).astype(np.float32)
+    depth[5, 7] = np.nan
+    mu, mv, zq = reproject(depth, camera_rays(INTR), pose_p, INTR, pose_q)
+    pts = backproject(pixel_grid(INTR.height, INTR.width), depth.ravel(), INTR, pose_p)
+    uv, z = project(pts, INTR, pose_q)
+    ok = np.isfinite(z)
+    assert np.allclose(mu.ravel()[ok], uv[ok, 0], atol=2e-3)
+    assert np.allclose(mv.ravel()[ok], uv[ok, 1], atol=2e-3)
+    assert np.allclose(zq.ravel()[ok], z[ok], rtol=1e-5)
+    assert np.isnan(mu[5, 7]) and np.isnan(zq[5, 7])
+
+
+def test_no_change_gives_almost_no_raw_change_even_with_exposure_difference():
+    image, depth = render_wall(wall_pose(0.0))
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    nbs = [neighbour(-0.6, gain=0.7), neighbour(0.6, gain=1.2)]
+    change, support = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0), nbs)
+    assert change.dtype == np.float32 and change.shape == depth.shape
+    assert (support == 2).mean() > 0.85  # the rest lies outside one neighbour's image
+    # only panel edges (bilinear resampling of a hard edge) differ; the S-curve midpoint is 0.24
+    assert np.mean(change > 0.24) < 0.02
+    assert np.median(change[support > 0]) < 0.02
+
+
+def test_new_object_in_the_image_gives_raw_change_there():
+    image, depth = render_wall(wall_pose(0.0))
+    image[40:80, 60:100] = [200, 40, 200]  # a board not in the cloud (nor in q's image)
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    change, _ = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
+                           [neighbour(-0.6), neighbour(0.6)])
+    assert np.mean(change[42:78, 62:98] > 0.24) > 0.9
+    outside = np.ones(depth.shape, bool)
+    outside[38:82, 58:102] = False
+    assert np.mean(change[outside] > 0.24) < 0.02
+
+
+def test_minimum_over_neighbours_needs_every_neighbour_to_disagree():
+    """Eq. 5: a difference that only one neighbour shows is not a change."""
+    image, depth = render_wall(wall_pose(0.0))
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    stretched = stretch_histogram(image)
+    good, bad = neighbour(-0.6), neighbour(0.6)
+    spoiled = Neighbour(255 - bad.image, bad.depth, INTR, bad.pose)  # disagrees everywhere
+
+    def change_with(*nbs):
+        return raw_change(stretched, depth, cls, INTR, wall_pose(0.0), list(nbs))
+
+    c_good, s_good = change_with(good)
+    c_bad, s_bad = change_with(spoiled)
+    c_both, s_both = change_with(spoiled, good)
+    both = (s_good == 1) & (s_bad == 1)
+    assert np.array_equal(s_both, s_good + s_bad)
+    assert np.array_equal(c_both[both], np.minimum(c_good, c_bad)[both])
+    assert np.median(c_bad[both]) > 0.5 and np.median(c_both[both]) < 0.02
+
+
+def test_occluded_pixels_give_no_evidence():
+    image, depth = render_wall(wall_pose(0.0))
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    nb = neighbour(0.6)
+    q_depth = nb.depth.copy()
+    q_depth[:, :80] = 3.0  # q sees something 7 m closer over its left half
+    inverted = 255 - nb.image  # and would disagree everywhere
+    change, support = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
+                                 [Neighbour(inverted, q_depth, INTR, nb.pose)])
+    mu, _, _ = reproject(depth, camera_rays(INTR), wall_pose(0.0), INTR, nb.pose)
+    hidden = np.round(mu) < 80
+    assert np.all(support[hidden] == 0) and np.all(change[hidden] == 0)
+    assert np.mean(change[~hidden & (support == 1)] > 0.24) > 0.5
+
+
+def test_pixels_without_surface_or_neighbours_get_zero():
+    image, depth = render_wall(wall_pose(0.0))
+    depth[:20] = np.nan
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    inverted = neighbour(0.6)
+    inverted = Neighbour(255 - inverted.image, inverted.depth, INTR, inverted.pose)
+    change, support = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
+                                 [inverted])
+    assert np.all(change[:20] == 0) and np.all(support[:20] == 0)
+    change, support = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0), [])
+    assert not change.any() and not support.any()
+
+
+@pytest.mark.parametrize("weight", [0.0, 0.2, 1.0])
+def test_tree_and_road_pixels_are_down_weighted(weight):
+    image, depth = render_wall(wall_pose(0.0))
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    cls[:, :40] = classes.VEGETATION
+    cls[:, 40:60] = classes.ROAD
+    inverted = neighbour(0.0)
+    inverted = Neighbour(255 - inverted.image, inverted.depth, INTR, inverted.pose)
+    params = CorrelateParams(low_class_weight=weight)
+    change, _ = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
+                           [inverted], params)
+    full, _ = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0), [inverted],
+                         CorrelateParams(low_class_weight=1.0))
+    assert np.allclose(change[:, :60], weight * full[:, :60], atol=1e-6)
+    assert np.array_equal(change[:, 60:], full[:, 60:])
+
+
+def test_fused_kernel_matches_the_remap_reference_with_distortion_and_occlusion():
+    """raw_change (one numba pass) = min over warp_neighbour + color_distance (cv2.remap)."""
+    from streetcd.correlate import color_distance, warp_neighbour
+
+    distorted = Intrinsics(160, 120, 140.0, 140.0, 79.5, 59.5, (-0.15, 0.02, 0.001, 0.0, 0.0))
+    image, depth = render_wall(wall_pose(0.0))
+    depth[:10] = np.nan
+    pose_q = wall_pose(0.5)
+    image_q, depth_q = render_wall(pose_q, distorted)
+    depth_q[:, :30] = 4.0  # an occluder in q
+    nb = Neighbour(stretch_histogram(image_q), depth_q, distorted, pose_q)
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    stretched = stretch_histogram(image)
+    change, support = raw_change(stretched, depth, cls, INTR, wall_pose(0.0), [nb])
+    warped, valid = warp_neighbour(nb, depth, camera_rays(INTR), wall_pose(0.0), 0.3)
+    reference = np.where(valid, color_distance(stretched, warped), 0.0)
+    edge = np.abs(np.round(reproject(depth, camera_rays(INTR), wall_pose(0.0), distorted,
+                                     pose_q)[0]) - 29.5) < 1.5  # nearest-pixel ties at the occluder
+    assert np.array_equal(support[~edge] == 1, valid[~edge])
+    assert valid.mean() > 0.5 and not valid[:10].any()
+    # cv2.remap quantises its interpolation weights to 1/32 px
+    assert np.percentile(np.abs(change - reference)[~edge], 99) < 0.01
+
+
+@pytest.mark.parametrize("radius", [0, 1, 3])
+def test_stretched_envelope_equals_the_envelope_of_the_stretched_image(radius):
+    """Guards the shortcut detect_view takes for neighbours (erode/dilate on uint8, then the
+    stretch): the stretch is non-decreasing per channel, so the result is bit-identical."""
+    from streetcd.correlate import colour_envelope, stretch_histogram, stretched_envelope
+
+    image = np.random.default_rng(3).integers(0, 256, (61, 83, 3), dtype=np.uint8)
+    image[..., 2] = 7  # a flat channel: passed through unchanged
+    got = stretched_envelope(image, radius, (2.0, 97.0))
+    want = colour_envelope(stretch_histogram(image, (2.0, 97.0)), radius)
+    assert got[0].dtype == np.float32
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

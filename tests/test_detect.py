@@ -1,0 +1,378 @@
+"""One view end to end: a wall, the ground and a board floating in front of the wall, seen by
+four cameras side by side. The images are ray-cast here; the cloud samples the same surfaces.
+
+* the board in the cloud and in the images: nothing changed, the mask must be empty;
+* the board in the images only (new since the scan): the mask must cover it.
+"""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from streetcd import classes
+from streetcd.camera import Intrinsics, Pose, look_at, pixel_grid, pixel_rays
+from streetcd.cli.detect import detect
+from streetcd.detect import (
+    DetectionResult,
+    detect_files,
+    detect_view,
+    load_clouds,
+    read_image,
+)
+from streetcd.errors import CorruptFileError, EmptyViewError, MissingInputError
+from streetcd.io.las import PointCloud, write_las
+from streetcd.io.poses import read_poses, write_opk_csv
+from streetcd.params import DetectParams, SurfaceParams, ZBufferParams, load_params
+from streetcd.views import PoseSet, View
+
+INTR = Intrinsics(320, 240, 280.0, 280.0, 159.5, 119.5)
+ORIGIN = np.array([500000.0, 4000000.0, 100.0])  # CRS metres of the local frame
+CRS = "EPSG:32632"
+WALL_Y = 12.0
+BOARD = (np.array([-0.8, 7.0, 1.0]), np.array([0.8, 8.0, 2.4]))  # a box, 1.6 × 1 × 1.4 m
+CAMERAS = {"p.png": 0.0, "a.png": -1.0, "b.png": 1.0, "c.png": 2.0}
+# Surface filters for these small images: the paper's 30 px edge filter is given at 4000 px
+# width and shrinks to 2.4 px here, below the spacing of the z-buffered points.
+PARAMS = DetectParams(surface=SurfaceParams(max_edge_px=250.0),
+                      zbuffer=ZBufferParams(block_window_px=2, weighted_window_px=7))
+
+
+def local_pose(x: float) -> Pose:
+    return look_at([x, 0.0, 1.6], [x, WALL_Y, 1.6])
+
+
+def make_view(name: str) -> View:
+    p = local_pose(CAMERAS[name])
+    return View(name, INTR, Pose.from_center(p.R, p.center + ORIGIN))
+
+
+def cells(points: np.ndarray, size: float, salt: int) -> np.ndarray:
+    """Random colour per ``size`` m cube: a texture every camera sees the same way."""
+    ix = np.floor(points / size).astype(np.int64)
+    h = (ix[:, 0] * 73856093) ^ (ix[:, 1] * 19349663) ^ (ix[:, 2] * 83492791) ^ salt
+    h = (h * 2654435761) & 0xFFFFFFFF
+    return np.column_stack([h & 255, (h >> 8) & 255, (h >> 16) & 255]).astype(np.float64)
+
+
+def render(x: float, board: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast camera ``x``: (H, W, 3) uint8 image and (H, W) bool "pixel shows the board"."""
+    pose = local_pose(x)
+    rays = pixel_rays(pixel_grid(INTR.height, INTR.width), INTR) @ pose.R  # world directions
+    c = pose.center
+    t = np.full(len(rays), np.inf)
+    what = np.full(len(rays), -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k, hit in enumerate([(WALL_Y - c[1]) / rays[:, 1], -c[2] / rays[:, 2]]):
+            ok = (hit > 0) & (hit < t)
+            t[ok], what[ok] = hit[ok], k
+        if board:
+            lo, hi = BOARD
+            t1, t2 = (lo - c) / rays, (hi - c) / rays
+            near = np.nanmax(np.minimum(t1, t2), axis=1)
+            far = np.nanmin(np.maximum(t1, t2), axis=1)
+            ok = (near <= far) & (near > 0) & (near < t)
+            t[ok], what[ok] = near[ok], 2
+    pts = c + rays * t[:, None]
+    rgb = np.full((len(rays), 3), 200.0)  # sky
+    rgb[what == 0] = 90 + 0.3 * cells(pts[what == 0], 0.3, 1)  # wall: muted panels
+    rgb[what == 1] = 60 + 0.25 * cells(pts[what == 1], 0.4, 2)[:, :1]  # ground: grey tiles
+    rgb[what == 2] = cells(pts[what == 2], 0.2, 3)  # board: bright random cells
+    image = np.clip(rgb, 0, 255).astype(np.uint8).reshape(INTR.height, INTR.width, 3)
+    return image, (what == 2).reshape(INTR.height, INTR.width)
+
+
+def make_cloud(board: bool, step: float = 0.04) -> PointCloud:
+    """Points every ``step`` m on the wall, the ground and (optionally) the board's faces."""
+    xs = np.arange(-12, 12, step)
+    parts = [(np.stack(np.meshgrid(xs, [WALL_Y], np.arange(0, 8, step)), -1), classes.BUILDING),
+             (np.stack(np.meshgrid(xs, np.arange(0.5, WALL_Y, step), [0.0]), -1), classes.GROUND)]
+    if board:
+        lo, hi = BOARD
+        a, b, h = (np.arange(lo[i], hi[i] + 1e-9, step) for i in range(3))
+        for face in (np.meshgrid(a, [lo[1]], h), np.meshgrid(a, b, [hi[2]]),
+                     np.meshgrid(a, b, [lo[2]]), np.meshgrid([lo[0]], b, h),
+                     np.meshgrid([hi[0]], b, h)):
+            parts.append((np.stack(face, -1), classes.SIGN))
+    xyz = np.concatenate([p.reshape(-1, 3) for p, _ in parts])
+    cls = np.concatenate([np.full(p.size // 3, c, np.uint8) for p, c in parts])
+    return PointCloud(xyz, ORIGIN.copy(), cls)
+
+
+@pytest.fixture(scope="module")
+def images() -> dict[str, np.ndarray]:
+    return {name: render(x)[0] for name, x in CAMERAS.items()}
+
+
+def run(images, cloud) -> DetectionResult:
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    return detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS)
+
+
+def test_no_change_gives_an_empty_mask(images):
+    result = run(images, make_cloud(board=True))
+    assert result.depth.shape == (240, 320) and np.isfinite(result.depth).mean() > 0.9
+    assert np.mean(result.raw_change > 11 / 45) < 0.002  # almost nothing past the midpoint
+    assert not result.mask.any() and result.regions == [] and result.score == 0.0
+    assert result.changed_fraction == 0.0
+    assert result.neighbours == ("a.png", "b.png", "c.png")
+
+
+def test_a_board_missing_from_the_cloud_is_detected(images):
+    result = run(images, make_cloud(board=False))
+    board = render(0.0)[1]
+    assert result.mask[board].mean() > 0.75
+    assert result.mask[~board].mean() < 0.005
+    assert len(result.regions) == 1
+    region = result.regions[0]
+    assert region.pixels == result.mask.sum() and region.label == 1
+    assert 0.5 < region.score <= 1.0 and result.score == region.score
+    # located on the old surface behind the board: the wall, around the board's x and z
+    assert region.dominant_class == classes.BUILDING
+    assert region.centroid[0] == pytest.approx(0.0, abs=0.3)
+    assert region.centroid[1] == pytest.approx(WALL_Y, abs=0.05)
+    assert 1.0 < region.centroid[2] < 2.6
+    assert np.all(region.bbox_min <= region.centroid) and np.all(region.centroid <= region.bbox_max)
+    assert np.array_equal(result.region_labels > 0, result.mask)
+    assert result.changed_fraction == pytest.approx(result.mask.mean())
+    assert np.array_equal(result.origin, ORIGIN)
+
+
+def test_a_view_that_sees_no_points_names_the_view(images):
+    looking_away = look_at([0.0, 0.0, 1.6], [0.0, -10.0, 1.6])
+    view = View("away.png", INTR, Pose.from_center(looking_away.R, looking_away.center + ORIGIN))
+    with pytest.raises(EmptyViewError, match="away.png"):
+        detect_view(images["p.png"], view, [], make_cloud(board=False), PARAMS)
+
+
+def test_a_neighbour_that_sees_no_points_is_left_out(images):
+    away = look_at([0.0, 0.0, 1.6], [0.0, -10.0, 1.6])
+    nb = View("away.png", INTR, Pose.from_center(away.R, away.center + ORIGIN))
+    result = detect_view(images["p.png"], make_view("p.png"),
+                         [(images["a.png"], nb), (images["b.png"], make_view("b.png"))],
+                         make_cloud(board=True), PARAMS)
+    assert result.neighbours == ("b.png",)
+
+
+def test_an_image_of_the_wrong_size_names_the_view(images):
+    with pytest.raises(ValueError, match=r"'p.png'.*\(240, 320, 3\)"):
+        detect_view(images["p.png"][:100], make_view("p.png"), [], make_cloud(True), PARAMS)
+
+
+# --- files and the CLI -------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory, images) -> Path:
+    """Images (PNG), an OPK CSV and the board-less cloud split over two LAZ files."""
+    root = tmp_path_factory.mktemp("scene")
+    (root / "images").mkdir()
+    for name, image in images.items():
+        cv2.imwrite(str(root / "images" / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    write_opk_csv(root / "poses.csv", [make_view(n) for n in CAMERAS], CRS)
+    cloud = make_cloud(board=False)
+    left = cloud.xyz[:, 0] < 0.3
+    for name, sel in (("left.laz", left), ("right.laz", ~left)):
+        write_las(root / name, cloud.xyz[sel], cloud.classification[sel], origin=ORIGIN, crs=CRS)
+    (root / "params.yaml").write_text(
+        "detect:\n  surface: {max_edge_px: 250.0}\n"
+        "  zbuffer: {block_window_px: 2, weighted_window_px: 7}\n")
+    return root
+
+
+def test_clouds_with_different_offsets_share_one_frame(scene_dir):
+    cloud = load_clouds([scene_dir / "left.laz", scene_dir / "right.laz"])
+    expected = make_cloud(board=False)
+    assert len(cloud) == len(expected) and cloud.crs == CRS
+    got = np.sort(cloud.xyz + cloud.origin - ORIGIN, axis=0)
+    assert np.abs(got - np.sort(expected.xyz, axis=0)).max() < 1e-3  # 1 mm LAS scale
+
+
+def test_cli_writes_mask_overlay_and_summary(scene_dir, tmp_path):
+    out = tmp_path / "out"
+    args = ["--cloud", str(scene_dir / "left.laz"), str(scene_dir / "right.laz"),
+            "--poses", str(scene_dir / "poses.csv"), "--images", str(scene_dir / "images"),
+            "--view", "p.png", "--params", str(scene_dir / "params.yaml"), "--out", str(out)]
+    result = CliRunner().invoke(detect, args)
+    assert result.exit_code == 0, result.output
+    mask = cv2.imread(str(out / "p.mask.png"), cv2.IMREAD_UNCHANGED)
+    assert mask.dtype == np.uint8 and mask.shape == (240, 320)
+    assert set(np.unique(mask)) == {0, 255}
+    board = render(0.0)[1]
+    assert (mask[board] == 255).mean() > 0.75
+    assert cv2.imread(str(out / "p.overlay.jpg")).shape == (240, 320, 3)
+    info = json.loads((out / "p.json").read_text())
+    assert info["view"] == "p.png" and info["score"] > 0.5
+    assert len(info["neighbours"]) == 3 and "p.png" not in info["neighbours"]
+    (region,) = info["regions"]
+    centroid = np.array(region["centroid"]) - ORIGIN  # written in the CRS
+    assert centroid[0] == pytest.approx(0.0, abs=0.3) and centroid[1] == pytest.approx(12, abs=0.05)
+    assert {"surface", "raw_change", "graphcut", "total"} <= set(info["timings_s"])
+
+
+def test_cli_with_named_neighbours(scene_dir, tmp_path):
+    args = ["--cloud", str(scene_dir / "left.laz"), "--cloud", str(scene_dir / "right.laz"),
+            "--poses", str(scene_dir / "poses.csv"), "--images", str(scene_dir / "images"),
+            "--view", "p", "--neighbours", "a.png,b.png", "--params",
+            str(scene_dir / "params.yaml"), "--out", str(tmp_path)]
+    result = CliRunner().invoke(detect, args)
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "p.json").read_text())["neighbours"] == ["a.png", "b.png"]
+
+
+def cli_error(scene_dir, tmp_path, view="p.png", images=None, clouds=("left.laz",)):
+    args = ["--cloud", *(str(scene_dir / c) for c in clouds),
+            "--poses", str(scene_dir / "poses.csv"),
+            "--images", str(images or scene_dir / "images"), "--view", view,
+            "--params", str(scene_dir / "params.yaml"), "--out", str(tmp_path / "out")]
+    result = CliRunner().invoke(detect, args)
+    assert result.exit_code != 0
+    lines = [x for x in result.output.splitlines() if x.strip()]
+    assert len(lines) == 1, result.output  # one line, no traceback
+    return lines[0]
+
+
+def test_a_corrupt_image_fails_naming_the_view_and_the_file(scene_dir, tmp_path):
+    bad = tmp_path / "images"
+    bad.mkdir()
+    for name in CAMERAS:
+        (bad / name).write_bytes((scene_dir / "images" / name).read_bytes())
+    (bad / "p.png").write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
+    line = cli_error(scene_dir, tmp_path, images=bad)
+    assert "'p.png'" in line and "cannot be decoded" in line and str(bad / "p.png") in line
+
+
+def test_read_image_rejects_truncated_and_missing_files(tmp_path, images):
+    ok, buf = cv2.imencode(".jpg", images["p.png"])
+    path = tmp_path / "cut.jpg"
+    path.write_bytes(buf.tobytes()[: len(buf) // 2])
+    with pytest.raises(CorruptFileError, match="cut.jpg"):
+        read_image(path)
+    with pytest.raises(MissingInputError, match="nothing.jpg"):
+        read_image(tmp_path / "nothing.jpg")
+    (tmp_path / "good.jpg").write_bytes(buf.tobytes())
+    assert read_image(tmp_path / "good.jpg").shape == (240, 320, 3)
+
+
+def test_a_missing_pose_fails_naming_the_view(scene_dir, tmp_path):
+    line = cli_error(scene_dir, tmp_path, view="q.png")
+    assert "'q.png'" in line and "no pose" in line
+
+
+def test_a_view_without_points_fails_naming_the_view(scene_dir, tmp_path):
+    poses = read_poses(scene_dir / "poses.csv", scene_dir / "images")
+    cloud = make_cloud(board=False)
+    far = PointCloud(cloud.xyz + [0.0, 500.0, 0.0], cloud.origin, cloud.classification)
+    with pytest.raises(EmptyViewError, match="'p.png' sees no reference points"):
+        detect_files("p.png", poses, scene_dir / "images", far, PARAMS)
+
+
+def test_a_missing_image_file_names_the_view(scene_dir, tmp_path):
+    poses = read_poses(scene_dir / "poses.csv")
+    extra = make_view("p.png")
+    extra = View("ghost.png", extra.intrinsics, extra.pose)
+    poses = PoseSet(poses.views + (extra,), poses.crs, poses.source)
+    with pytest.raises(MissingInputError, match="'ghost.png'.*image not found"):
+        detect_files("ghost.png", poses, scene_dir / "images", make_cloud(False), PARAMS)
+
+
+def test_default_config_mirrors_the_parameter_defaults():
+    import yaml
+
+    from streetcd.params import params_to_dict
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
+    assert load_params(path) == DetectParams()
+    # every parameter is written out, so the file shows the whole set
+    assert yaml.safe_load(path.read_text())["detect"] == params_to_dict(DetectParams())
+
+
+def test_raw_change_on_large_cells_is_computed_coarser_and_agrees(images):
+    """With 48 px superpixel cells the raw change runs at half resolution (CHANGE_CELL_PX)."""
+    from dataclasses import replace
+
+    coarse = replace(PARAMS, graphcut=replace(PARAMS.graphcut, superpixel_cell_px=600.0))
+    cloud = make_cloud(board=False)
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    full = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS)
+    half = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, coarse)
+    assert half.raw_change.shape == full.raw_change.shape == (240, 320)
+    board = render(0.0)[1]
+    assert np.mean(half.raw_change[board]) == pytest.approx(np.mean(full.raw_change[board]),
+                                                            abs=0.05)
+    assert np.mean(half.raw_change[~board]) < 0.02 and np.mean(half.raw_change[board]) > 0.3
+
+
+# --- the surface cache ---------------------------------------------------------------------
+
+
+def test_surface_cache_reuses_surfaces_and_gives_the_same_result(images):
+    from streetcd.detect import SurfaceCache
+
+    cloud = make_cloud(board=False)
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    fresh = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS, surfaces=None)
+    cache = SurfaceCache()
+    first = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS, surfaces=cache)
+    assert (cache.hits, cache.misses, len(cache)) == (0, 4, 4)
+    # a neighbour's turn, its images read anew (new arrays, same bytes): all four are hits
+    again = [(images[n].copy(), make_view(n)) for n in ("p.png", "b.png", "c.png")]
+    detect_view(images["a.png"].copy(), make_view("a.png"), again, cloud, PARAMS, surfaces=cache)
+    assert (cache.hits, cache.misses) == (4, 4)
+    second = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS, surfaces=cache)
+    assert cache.hits == 8
+    for got in (first, second):
+        for name in ("mask", "raw_change", "depth", "classes", "support", "superpixels"):
+            assert np.array_equal(getattr(got, name), getattr(fresh, name), equal_nan=True), name
+    with pytest.raises(ValueError, match="read-only"):
+        second.depth[0, 0] = 1.0  # shared with the cache
+
+
+def test_surface_cache_misses_for_another_cloud_image_or_pose(images):
+    from streetcd.detect import SurfaceCache
+
+    cache = SurfaceCache()
+    cloud = make_cloud(board=False)
+    p, view = images["p.png"], make_view("p.png")
+    detect_view(p, view, [], cloud, PARAMS, surfaces=cache)
+    same_points = PointCloud(cloud.xyz.copy(), cloud.origin, cloud.classification.copy())
+    with_board = make_cloud(board=True)
+    detect_view(p, view, [], same_points, PARAMS, surfaces=cache)  # new arrays: not trusted
+    result = detect_view(p, view, [], with_board, PARAMS, surfaces=cache)
+    brighter = np.clip(p.astype(np.int16) + 1, 0, 255).astype(np.uint8)
+    detect_view(brighter, view, [], cloud, PARAMS, surfaces=cache)
+    moved = make_view("a.png")
+    detect_view(p, View("p.png", moved.intrinsics, moved.pose), [], cloud, PARAMS,
+                surfaces=cache)
+    assert (cache.hits, cache.misses) == (0, 5)
+    fresh = detect_view(p, view, [], with_board, PARAMS, surfaces=None)
+    assert np.array_equal(result.depth, fresh.depth, equal_nan=True)
+
+
+def test_surface_cache_stays_within_its_byte_bound(images):
+    from streetcd.detect import SurfaceCache
+
+    one = 240 * 320 * (4 + 1 + 1)  # depth float32, classes uint8, valid bool
+    cache = SurfaceCache(max_bytes=2 * one)
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    detect_view(images["p.png"], make_view("p.png"), nbs, make_cloud(False), PARAMS,
+                surfaces=cache)
+    assert len(cache) == 2 and cache.misses == 4
+
+
+def test_surface_cache_forgets_the_surfaces_of_a_freed_cloud(images):
+    import gc
+
+    from streetcd.detect import SurfaceCache
+
+    cache = SurfaceCache()
+    nbs = [(images["a.png"], make_view("a.png"))]
+    detect_view(images["p.png"], make_view("p.png"), nbs, make_cloud(False), PARAMS,
+                surfaces=cache)  # that cloud is freed on return
+    gc.collect()
+    cloud = make_cloud(False)
+    detect_view(images["p.png"], make_view("p.png"), [], cloud, PARAMS, surfaces=cache)
+    assert len(cache) == 1 and cache.hits == 0

@@ -1,0 +1,183 @@
+"""Node energy (eq. 7), smoothness (eq. 8–9), superpixels (eq. 10–11), max-flow, speckle."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from streetcd.graphcut import (
+    adjacency,
+    cut_changes,
+    min_cut,
+    node_energy,
+    smoothness,
+    speckle_filter,
+    speckle_min_px,
+    superpixels,
+)
+from streetcd.params import GraphCutParams
+
+
+def test_node_energy_is_a_monotone_s_curve_from_0_to_1():
+    c = np.linspace(0, 1, 1001, dtype=np.float32)
+    f = node_energy(c, 45.0, 11.0)
+    assert f.dtype == np.float32
+    assert f[0] == 0.0 and f[-1] == pytest.approx(1.0, abs=1e-6)
+    assert np.all(np.diff(f) >= 0)
+    assert node_energy(np.float32(11 / 45), 45, 11) == pytest.approx(0.5, abs=1e-4)  # midpoint b/a
+    # an S, not a line: flat near 0 (illumination noise suppressed), steep in the middle
+    assert f[100] < 0.02 and f[400] > 0.98
+    assert node_energy(np.array([-0.5, 2.0], np.float32)).tolist() == [0.0, 1.0]  # clipped
+
+
+def test_node_energy_steepness_follows_a():
+    c = np.array([0.2], np.float32)
+    assert node_energy(c, 30, 6)[0] < node_energy(c, 30, 5)[0]  # larger b shifts right
+
+
+def pair(color_i, color_j, depth_i=10.0, depth_j=10.0, cls_i=6, cls_j=6, **switches):
+    p = replace(GraphCutParams(), **switches)
+    return smoothness(np.array([color_i], float), np.array([color_j], float),
+                      np.array([depth_i]), np.array([depth_j]), np.array([cls_i]),
+                      np.array([cls_j]), p)[0]
+
+
+def test_smoothness_is_zero_across_classes_and_one_for_identical_nodes():
+    assert pair([100, 100, 100], [100, 100, 100]) == 1.0
+    assert pair([100, 100, 100], [100, 100, 100], cls_i=6, cls_j=2) == 0.0
+    assert pair([100, 100, 100], [100, 100, 100], cls_i=6, cls_j=2, use_class=False) == 1.0
+
+
+def test_smoothness_is_larger_for_similar_colours_and_depths():
+    near = pair([100, 100, 100], [103, 100, 96])
+    far = pair([100, 100, 100], [160, 40, 100])
+    assert near == pytest.approx(math.exp(-5 / 10.0))  # colour distance 5, color_scale 10
+    assert near > far > 0
+    assert pair([100] * 3, [100] * 3, 10.0, 10.25) == pytest.approx(math.exp(-0.25 / 0.5))
+    assert pair([100] * 3, [100] * 3, 10.0, 13.0) < pair([100] * 3, [100] * 3, 10.0, 10.2)
+    # eq. 8 takes the smaller of the two similarities
+    assert pair([100] * 3, [103, 100, 96], 10.0, 13.0) == pytest.approx(math.exp(-3 / 0.5))
+
+
+def test_smoothness_switches_drop_their_term():
+    assert pair([0, 0, 0], [255, 255, 255], use_color=False) == 1.0
+    assert pair([9] * 3, [9] * 3, 5.0, 50.0, use_depth=False) == 1.0
+    nan = float("nan")
+    assert pair([9] * 3, [9] * 3, nan, nan) == 1.0  # neither has a surface: alike
+    assert pair([9] * 3, [9] * 3, nan, 10.0) == 0.0  # surface against none: unlike
+
+
+def test_min_cut_on_a_hand_made_graph():
+    # a chain 0–1–2–3; D(0) = f is the cost of "unchanged", D(1) = 1 − f of "changed"
+    f = np.array([0.9, 0.4, 0.9, 0.1])
+    pairs = np.array([[0, 1], [1, 2], [2, 3]])
+    assert min_cut(f, 1 - f, pairs, np.zeros(3)).tolist() == [True, False, True, False]
+    # cutting 0|1 and 1|2 (0.4) costs more than flipping node 1 (1−2·0.4 = 0.2)
+    assert min_cut(f, 1 - f, pairs, np.full(3, 0.2)).tolist() == [True, True, True, False]
+    # …and cutting 2|3 (1.0) costs more than flipping node 3 (0.8)
+    assert min_cut(f, 1 - f, pairs, np.full(3, 1.0)).tolist() == [True] * 4
+    # a weak link keeps two groups apart
+    w = np.array([5.0, 5.0, 0.01])
+    assert min_cut(f, 1 - f, pairs, w).tolist() == [True, True, True, False]
+
+
+def test_adjacency_counts_boundary_pixel_pairs():
+    labels = np.array([[0, 0, 1],
+                       [2, 2, 1],
+                       [2, 2, 1]])
+    pairs, boundary = adjacency(labels)
+    assert pairs.tolist() == [[0, 1], [0, 2], [1, 2]]
+    assert boundary.tolist() == [1, 2, 2]
+
+
+def test_speckle_filter_removes_exactly_the_components_below_the_threshold():
+    mask = np.zeros((30, 40), bool)
+    mask[1:3, 1:6] = True  # 10 px
+    mask[10:13, 1:4] = True  # 9 px
+    mask[20, 20] = True  # 1 px
+    mask[20:25, 30:36] = True  # 30 px
+    mask[5, 20] = mask[6, 21] = mask[7, 22] = True  # 3 px, 8-connected diagonal
+    out = speckle_filter(mask, 10)
+    expected = np.zeros_like(mask)
+    expected[1:3, 1:6] = True
+    expected[20:25, 30:36] = True
+    assert np.array_equal(out, expected)
+    only_single = mask.copy()
+    only_single[20, 20] = False
+    assert np.array_equal(speckle_filter(mask, 3), only_single)  # the 3 px diagonal stays
+
+
+def test_speckle_area_scales_with_the_square_of_the_width():
+    p = GraphCutParams(speckle_min_px=200)
+    assert speckle_min_px(4000, p) == 200
+    assert speckle_min_px(2000, p) == 50
+
+
+def test_superpixels_respect_class_boundaries():
+    rng = np.random.default_rng(3)
+    h, w = 90, 120
+    image = np.full((h, w, 3), 128, np.float32) + rng.normal(0, 2, (h, w, 3)).astype(np.float32)
+    rows, cols = np.mgrid[0:h, 0:w]
+    classes = np.where(cols + 0.7 * rows > 70, 6, 2).astype(np.uint8)  # a slanted boundary
+    params = GraphCutParams(superpixel_cell_px=400.0)  # 12 px cells at 120 px width
+    labels = superpixels(image, classes, params)
+    assert labels.dtype == np.int32 and labels.shape == (h, w)
+    n = labels.max() + 1
+    assert np.array_equal(np.unique(labels), np.arange(n))
+    assert 30 <= n <= 130  # about (90·120) / 12² = 75 cells
+    mixed = [k for k in range(n) if len(np.unique(classes[labels == k])) > 1]
+    assert mixed == []
+
+
+def test_superpixels_at_reduced_resolution_stay_class_pure_and_cover_the_image():
+    rng = np.random.default_rng(4)
+    h, w = 240, 480
+    image = rng.uniform(0, 255, (h, w, 3)).astype(np.float32)
+    classes = np.full((h, w), 6, np.uint8)
+    classes[:, 200:] = 2
+    params = GraphCutParams(superpixel_cell_px=400.0, superpixel_work_cell_px=16.0)
+    labels = superpixels(image, classes, params)  # 48 px cells, SLIC at 1/3 size
+    assert labels.shape == (h, w)
+    purity = [np.bincount(classes[labels == k]).max() / np.sum(labels == k)
+              for k in range(labels.max() + 1)]
+    assert min(purity) > 0.9  # nearest-neighbour upsampling blurs the boundary by ≤ 1.5 px
+
+
+def board_scene():
+    """A red board on a blue background; the raw change says only its left half changed."""
+    rng = np.random.default_rng(5)
+    h, w = 120, 160
+    image = np.empty((h, w, 3), np.float32)
+    image[:] = [40, 60, 200]
+    image[30:90, 40:120] = [210, 40, 40]
+    image += rng.normal(0, 1.5, image.shape).astype(np.float32)
+    energy = np.zeros((h, w), np.float32)
+    energy[30:90, 40:80] = 0.95
+    energy[30:90, 80:120] = 0.2  # homogeneous: the neighbours' colours matched by chance
+    depth = np.full((h, w), 12.0, np.float32)
+    classes = np.full((h, w), 6, np.uint8)
+    board = np.zeros((h, w), bool)
+    board[30:90, 40:120] = True
+    return image, energy, depth, classes, board
+
+
+def test_graph_cut_spreads_change_over_the_similar_board_and_stops_at_its_edge():
+    image, energy, depth, classes, board = board_scene()
+    params = GraphCutParams(superpixel_cell_px=400.0, beta=3.0)  # 16 px cells
+    smooth = cut_changes(energy, image, depth, classes, params).mask
+    assert np.mean(smooth[board]) > 0.95 and np.mean(smooth[~board]) < 0.01  # cells vs edges
+    alone = cut_changes(energy, image, depth, classes, replace(params, beta=0.0)).mask
+    left = np.zeros_like(board)
+    left[30:90, 40:80] = True
+    assert np.mean(alone == left) > 0.98  # no smoothing: the cut thresholds f at 0.5
+
+
+def test_graph_cut_does_not_spread_across_a_class_boundary():
+    image, energy, depth, classes, board = board_scene()
+    classes[:, 80:] = 2  # the right half of the board is another class
+    params = GraphCutParams(superpixel_cell_px=400.0, beta=3.0)
+    mask = cut_changes(energy, image, depth, classes, params).mask
+    assert np.mean(mask[30:90, 40:80]) > 0.95 and np.mean(mask[30:90, 82:120]) < 0.03
+    no_class = cut_changes(energy, image, depth, classes, replace(params, use_class=False)).mask
+    assert np.mean(no_class[board]) > 0.95

@@ -1,0 +1,61 @@
+"""Neighbour selection by frustum overlap."""
+
+import numpy as np
+import pytest
+
+from streetcd.camera import Intrinsics, Pose, look_at
+from streetcd.neighbours import overlap, select_neighbours
+from streetcd.views import View
+
+INTR = Intrinsics(400, 300, 350.0, 350.0, 199.5, 149.5)
+ORIGIN = np.array([350000.0, 5600000.0, 300.0])  # CRS-sized coordinates
+
+
+def view(name: str, x: float, heading: float = 1.0, y: float = 0.0) -> View:
+    """A camera at (x, y) on a street, 1.6 m high, looking along +y (heading 1) or −y."""
+    local = look_at([x, y, 1.6], [x, y + 10.0 * heading, 1.6])
+    return View(name, INTR, Pose.from_center(local.R, local.center + ORIGIN))
+
+
+def strip(n: int = 7, spacing: float = 2.0) -> list[View]:
+    return [view(f"img_{i:02d}.jpg", i * spacing) for i in range(n)]
+
+
+def test_overlap_of_a_view_with_itself_is_one_and_falls_with_distance():
+    views = strip()
+    assert overlap(views[3], views[3]) == 1.0
+    shares = [overlap(views[3], views[3 + k]) for k in (1, 2, 3)]
+    assert 1.0 > shares[0] > shares[1] > shares[2] > 0.0
+
+
+def test_nearest_views_are_chosen_never_the_view_itself():
+    views = strip()
+    chosen = select_neighbours(views[3], views, n=2)
+    assert [v.name for v in chosen] == ["img_02.jpg", "img_04.jpg"]  # tie: by name
+    chosen = select_neighbours(views[3], views, n=3)
+    assert views[3] not in chosen and len(chosen) == 3
+    assert {v.name for v in chosen[:2]} == {"img_02.jpg", "img_04.jpg"}
+
+
+def test_ties_are_broken_deterministically_whatever_the_input_order():
+    views = strip()
+    rng = np.random.default_rng(0)
+    first = [v.name for v in select_neighbours(views[3], views, n=4)]
+    for _ in range(3):
+        shuffled = [views[i] for i in rng.permutation(len(views))]
+        assert [v.name for v in select_neighbours(views[3], shuffled, n=4)] == first
+
+
+def test_views_looking_away_or_far_away_are_not_neighbours():
+    p = view("p.jpg", 0.0)
+    away = view("away.jpg", 1.0, heading=-1.0)
+    far = view("far.jpg", 500.0)
+    near = view("near.jpg", 1.5)
+    assert overlap(p, away) == 0.0
+    assert [v.name for v in select_neighbours(p, [away, far, near], n=3)] == ["near.jpg"]
+
+
+@pytest.mark.parametrize("n", [0, 1, 5])
+def test_at_most_n_are_returned(n):
+    views = strip(9, 1.0)
+    assert len(select_neighbours(views[4], views, n=n)) == min(n, 8)
