@@ -12,6 +12,13 @@ from streetcd import __version__
 # `streetcd --help` stays fast.
 COMMANDS = [
     ("streetcd.cli.synth", "synth"),
+    ("streetcd.cli.evaluate", "evaluate"),
+    ("streetcd.cli.detect", "detect"),
+    ("streetcd.cli.run", "run"),
+    ("streetcd.cli.run", "demo"),
+    ("streetcd.cli.query", "query"),
+    ("streetcd.cli.ingest", "ingest"),
+    ("streetcd.cli.ingest", "tiles"),
 ]
 
 

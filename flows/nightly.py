@@ -1,0 +1,204 @@
+"""The nightly Prefect flow: ingest new MLS files → plan segments → detect on Dask → publish.
+
+Every task is a thin call into :mod:`streetcd.pipeline` (or :mod:`streetcd.tiles`). Prefect
+tracks the run, its plan and one task run per street segment; the per-view work goes to
+Dask directly (one Dask task per batch of consecutive views), so a city's thousands of
+images do not become thousands of Prefect task runs.
+
+Dask: a LocalCluster of ``workers`` processes, or the cluster at ``scheduler`` /
+``$STREETCD_SCHEDULER``. Workers crop their own cloud from the tile store and read their
+own images; only small records travel back.
+
+Run it with ``streetcd run`` (progress bar), ``python -m flows.nightly --help``, or deploy it
+with ``infra/prefect.yaml``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from prefect import flow, get_run_logger, task
+from prefect.cache_policies import NO_CACHE
+from prefect.task_runners import ThreadPoolTaskRunner
+from prefect.utilities.annotations import quote
+
+from streetcd import pipeline
+from streetcd.params import load_params
+
+# Tasks neither cache nor persist results: the change index is the flow's result and makes
+# reruns incremental; Prefect keeping pickled plans under ~/.prefect would only cost space.
+#
+# Each segment task mostly waits on Dask futures, so threads, not cores, bound how many
+# segments are in flight; 32 keeps a few dozen workers busy with whole segments.
+SEGMENTS_IN_FLIGHT = 32
+
+
+@task(name="ingest-archive", cache_policy=NO_CACHE, persist_result=False)
+def ingest_archive(archive: str, store: str, workers: int = 1) -> dict[str, Any]:
+    """Add new or changed LAS/LAZ files of ``archive`` to the tile store (others skipped)."""
+    from streetcd.tiles import ingest
+
+    result = ingest(archive, store, workers=workers)
+    logger = get_run_logger()
+    logger.info(
+        "ingest: %d new file(s), %d unchanged, %d failed, %d points, %d tiles",
+        len(result.ingested),
+        len(result.skipped),
+        len(result.failed),
+        result.points,
+        result.tiles,
+    )
+    for path, error in sorted(result.failed.items()):
+        logger.warning("ingest failed for %s: %s", path, error)
+    return {
+        "ingested": len(result.ingested),
+        "skipped": len(result.skipped),
+        "failed": len(result.failed),
+    }
+
+
+@task(name="plan-segments", cache_policy=NO_CACHE, persist_result=False)
+def plan(
+    images: str,
+    poses: str,
+    store: str,
+    index: str,
+    out: str,
+    params: pipeline.PipelineParams,
+    retry_failed: bool,
+) -> pipeline.Plan:
+    result = pipeline.plan_run(images, poses, store, index, out, params, retry_failed=retry_failed)
+    get_run_logger().info(
+        "run %s: %d views in %d segments; %d already in the index, %d to detect in %d batches,"
+        " %d failed before detection",
+        result.run_id,
+        result.n_views,
+        len(result.segments),
+        result.n_skipped,
+        result.n_todo,
+        len(result.batches),
+        len(result.failed_at_plan),
+    )
+    return result
+
+
+@task(
+    name="detect-segment",
+    cache_policy=NO_CACHE,
+    persist_result=False,
+    task_run_name="segment {segment_id}",
+)
+def detect_segment(
+    client: Any, plan: pipeline.Plan, segment_id: str, worker: str | None
+) -> pipeline.RunSummary:
+    t0 = time.perf_counter()
+    s = pipeline.detect_segment(client, plan, segment_id, worker)
+    get_run_logger().info(
+        "segment %s: %d views done, %d flagged, %d failed in %.1f s",
+        segment_id,
+        s.n_done,
+        s.n_flagged,
+        s.n_failed,
+        time.perf_counter() - t0,
+    )
+    return s
+
+
+@flow(
+    name="streetcd-nightly",
+    persist_result=False,
+    task_runner=ThreadPoolTaskRunner(max_workers=SEGMENTS_IN_FLIGHT),  # type: ignore[arg-type]
+)
+def nightly(
+    images: str,
+    poses: str,
+    store: str,
+    index: str,
+    out: str,
+    archive: str | None = None,
+    scheduler: str | None = None,
+    workers: int = 2,
+    params_file: str | None = None,
+    batch_size: int = 8,
+    segment_length_m: float = 100.0,
+    retry_failed: bool = False,
+) -> dict[str, Any]:
+    """One nightly run; returns the run summary (counts, times, failures).
+
+    images, poses : tonight's images folder and their pose file (COLMAP or OPK CSV).
+    store : the tile store of the reference MLS cloud; ``archive`` new LAS/LAZ to add first.
+    index, out : the change index (SQLite) and the folder for masks and overlays.
+    scheduler : a Dask scheduler address; default ``$STREETCD_SCHEDULER``, else a
+    LocalCluster of ``workers`` processes.
+    """
+    from dataclasses import replace
+
+    logger = get_run_logger()
+    t0 = time.perf_counter()
+    if archive:
+        ingest_archive(archive, store)
+    params = pipeline.PipelineParams(
+        detect=load_params(params_file),
+        batch_size=batch_size,
+        segments=replace(pipeline.SegmentParams(), length_m=segment_length_m),
+    )
+    the_plan = plan(images, poses, store, index, out, params, retry_failed)
+    summary = pipeline.new_summary(the_plan)
+    segments = the_plan.segments_todo
+    if segments:
+        with pipeline.dask_client(scheduler, workers) as client:
+            logger.info(
+                "dask: %s with %d worker(s), dashboard %s",
+                client.scheduler.address,
+                len(client.scheduler_info(n_workers=-1)["workers"]),
+                client.dashboard_link,
+            )
+            hints = pipeline.segment_workers(client, segments)
+            # quote(): hand the client and the plan over as they are; Prefect would
+            # otherwise walk every dataclass in them looking for futures.
+            futures = [
+                detect_segment.submit(
+                    quote(client),
+                    quote(the_plan),
+                    s,  # type: ignore[call-overload]
+                    hints[s],
+                )
+                for s in segments
+            ]
+            for f in futures:
+                summary.merge(f.result())
+    pipeline.finish_run(the_plan, summary)
+    summary.wall_s = time.perf_counter() - t0
+    logger.info(
+        "run %s finished in %.1f s: %d views, %d skipped, %d done, %d flagged, %d failed",
+        summary.run_id,
+        summary.wall_s,
+        summary.n_views,
+        summary.n_skipped,
+        summary.n_done,
+        summary.n_flagged,
+        summary.n_failed,
+    )
+    for view, error in summary.failures:
+        logger.warning("failed: %s: %s", view, error)
+    if summary.n_lost:
+        logger.warning(
+            "%d views were lost with their batches (see the log above); the next run retries them",
+            summary.n_lost,
+        )
+    return summary.as_dict()
+
+
+if __name__ == "__main__":
+    import argparse
+
+    ap = argparse.ArgumentParser(description=nightly.__doc__)
+    for name in ("images", "poses", "store", "index", "out"):
+        ap.add_argument(f"--{name}", required=True)
+    ap.add_argument("--archive")
+    ap.add_argument("--scheduler")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--params-file")
+    a = ap.parse_args()
+    nightly(**vars(a))

@@ -1,0 +1,282 @@
+"""``streetcd run`` (the nightly flow once, with a progress bar) and ``streetcd demo``.
+
+Both run the Prefect flow in ``flows/nightly.py``. Without ``PREFECT_API_URL`` Prefect starts
+a temporary local server for the run (about 20 s). Prefect's own log lines are shown from
+level WARNING (failed views, failed files) unless ``--verbose``; the progress bar and the
+summary come from here.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+
+from streetcd.errors import StreetcdError
+
+
+def quiet_prefect(verbose: bool = False) -> None:
+    """Environment defaults for a readable Prefect run; call before importing prefect."""
+    # Must happen before prefect is imported: it configures its logging on import.
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO" if verbose else "WARNING")
+    os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "WARNING")
+    # The temporary server gets 20 s by default, too little on a busy machine; and its
+    # telemetry, offline, only logs errors.
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    # Prefect's handlers would also show the in-process Dask scheduler's INFO chatter; dask
+    # reads this when distributed is first imported.
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "info" if verbose else "warning")
+
+
+def run_flow(*, verbose: bool = False, **kwargs: Any) -> dict[str, Any]:
+    """Run ``flows.nightly.nightly(**kwargs)`` with a rich progress bar; returns its summary."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from streetcd import pipeline
+
+    quiet_prefect(verbose)
+    from flows.nightly import nightly
+
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("flagged {task.fields[flagged]}  failed {task.fields[failed]}"),
+        TimeElapsedColumn(),
+        transient=False,
+    ) as bar:
+        job = bar.add_task("starting (Prefect, Dask)", total=None, flagged=0, failed=0)
+        counts: dict[str, Any] = {"flagged": 0, "failed": 0}
+
+        def on_progress(event: str, payload: Any) -> None:
+            if event == "planned":
+                bar.update(
+                    job,
+                    description=f"run {payload.run_id}",
+                    total=payload.n_todo,
+                    failed=len(payload.failed_at_plan),
+                )
+                counts["failed"] = len(payload.failed_at_plan)
+            elif event == "batch":
+                counts["flagged"] += sum(r.flagged for r in payload)
+                counts["failed"] += sum(r.status == "failed" for r in payload)
+                bar.update(job, advance=len(payload), **counts)
+
+        with pipeline.progress_listener(on_progress):
+            return nightly(**kwargs)
+
+
+def print_summary(summary: dict[str, Any], index: str) -> None:
+    s = summary
+    click.echo(
+        f"run {s['run_id']}: {s['n_views']} views, {s['n_skipped']} already in the index, "
+        f"{s['n_done']} detected, {s['n_flagged']} flagged, {s['n_failed']} failed "
+        f"in {s['wall_s']:.1f} s (detector {s['detect_s']:.1f} s in total)"
+    )
+    for view, error in s["failures"]:
+        click.echo(f"  failed {view}: {error}")
+    if s["n_lost"]:
+        click.echo(f"  {s['n_lost']} views lost with their batches; run again to finish them")
+    click.echo(f"index: {index}")
+
+
+def _default(path: str | None, out: str, name: str) -> str:
+    return str(Path(path) if path else Path(out) / name)
+
+
+@click.command("run")
+@click.option(
+    "--images",
+    required=True,
+    type=click.Path(exists=True, file_okay=False),
+    help="Folder of the new images.",
+)
+@click.option(
+    "--poses",
+    required=True,
+    type=click.Path(exists=True),
+    help="Their poses: COLMAP images.txt/.bin (or its folder) or an OPK .csv.",
+)
+@click.option(
+    "--store",
+    required=True,
+    type=click.Path(),
+    help="Tile store (zarr) of the reference MLS cloud.",
+)
+@click.option(
+    "--archive",
+    type=click.Path(exists=True),
+    help="LAS/LAZ folder: ingest new files into the store first.",
+)
+@click.option(
+    "--index",
+    "index",
+    type=click.Path(dir_okay=False),
+    help="Change index (default OUT/change_index.sqlite).",
+)
+@click.option(
+    "--scheduler",
+    envvar="STREETCD_SCHEDULER",
+    help="Dask scheduler address (default: $STREETCD_SCHEDULER, else a local cluster).",
+)
+@click.option(
+    "--workers",
+    type=int,
+    default=2,
+    show_default=True,
+    help="Worker processes of the local cluster.",
+)
+@click.option(
+    "--out",
+    default="streetcd-out",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="Folder for masks and overlays.",
+)
+@click.option(
+    "--params",
+    "params_file",
+    type=click.Path(exists=True, dir_okay=False),
+    help="Detector parameters (YAML, configs/default.yaml layout).",
+)
+@click.option("--batch-size", type=int, default=8, show_default=True, help="Views per Dask task.")
+@click.option("--retry-failed", is_flag=True, help="Process again views that failed before.")
+@click.option("-v", "--verbose", is_flag=True, help="Show Prefect's INFO logs.")
+def run(
+    images: str,
+    poses: str,
+    store: str,
+    archive: str | None,
+    index: str | None,
+    scheduler: str | None,
+    workers: int,
+    out: str,
+    params_file: str | None,
+    batch_size: int,
+    retry_failed: bool,
+    verbose: bool,
+) -> None:
+    """Run the nightly flow once: ingest, plan segments, detect on Dask, publish."""
+    index = _default(index, out, "change_index.sqlite")
+    try:
+        summary = run_flow(
+            images=images,
+            poses=poses,
+            store=store,
+            index=index,
+            out=out,
+            archive=archive,
+            scheduler=scheduler,
+            workers=workers,
+            params_file=params_file,
+            batch_size=batch_size,
+            retry_failed=retry_failed,
+            verbose=verbose,
+        )
+    except StreetcdError as exc:
+        raise click.ClickException(str(exc)) from None
+    print_summary(summary, index)
+
+
+@click.command("demo")
+@click.option(
+    "--out",
+    default="streetcd-demo",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="Folder for the city, store and results.",
+)
+@click.option("--streets", type=int, default=3, show_default=True)
+@click.option("--images-per-street", type=int, default=8, show_default=True)
+@click.option("--size", default="960x540", show_default=True, help="Image size WxH.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--workers", type=int, default=2, show_default=True)
+@click.option("-v", "--verbose", is_flag=True, help="Show Prefect's INFO logs.")
+def demo(
+    out: str,
+    streets: int,
+    images_per_street: int,
+    size: str,
+    seed: int,
+    workers: int,
+    verbose: bool,
+) -> None:
+    """Generate a small synthetic city, ingest it, run the nightly flow, list what changed."""
+    from streetcd.cli.query import run_query
+
+    try:
+        w, h = (int(x) for x in size.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"{size!r}: expected WxH, e.g. 960x540") from None
+    root = Path(out)
+    try:
+        paths = prepare_demo(
+            root, seed=seed, streets=streets, images_per_street=images_per_street, size=(w, h)
+        )
+        summary = run_flow(verbose=verbose, workers=workers, **paths)
+    except StreetcdError as exc:
+        raise click.ClickException(str(exc)) from None
+    print_summary(summary, paths["index"])
+    click.echo("")
+    click.echo(run_query(paths["index"], fmt="table"))
+    click.echo(
+        f"\nmore: streetcd query --index {paths['index']} --format geojson -o changes.geojson"
+    )
+
+
+def prepare_demo(
+    root: Path, *, seed: int, streets: int, images_per_street: int, size: tuple[int, int]
+) -> dict[str, str]:
+    """Generate the synthetic city under ``root/city`` and ingest its cloud into
+    ``root/store.zarr``; return the flow's path arguments."""
+    from streetcd.synth import generate_city
+    from streetcd.tiles import ingest
+
+    t0 = time.perf_counter()
+    city = root / "city"
+    manifest = city / "manifest.json"
+    if _same_city(manifest, seed, streets, images_per_street):
+        click.echo(f"city: {manifest} (already there)")
+    else:
+        click.echo(
+            f"generating a synthetic city: {streets} streets x {images_per_street} "
+            f"images of {size[0]}x{size[1]} (seed {seed}) ..."
+        )
+        manifest = Path(
+            generate_city(
+                city, seed=seed, n_streets=streets, images_per_street=images_per_street, size=size
+            )
+        )
+        click.echo(f"city: {manifest} ({time.perf_counter() - t0:.1f} s)")
+    store = root / "store.zarr"
+    result = ingest(manifest.parent / "cloud", store)
+    click.echo(f"store: {store} ({result.tiles} tiles, {len(result.ingested)} file(s) ingested)")
+    return {
+        "images": str(manifest.parent / "images"),
+        "poses": str(manifest.parent / "poses" / "poses_opk.csv"),
+        "store": str(store),
+        "index": str(root / "change_index.sqlite"),
+        "out": str(root / "results"),
+    }
+
+
+def _same_city(manifest: Path, seed: int, streets: int, images_per_street: int) -> bool:
+    """Whether ``manifest`` is a finished city made with these settings (reruns reuse it, and
+    the flow then finds every view already in the index)."""
+    import json
+
+    try:
+        m = json.loads(manifest.read_text(encoding="utf-8"))
+        g = m["generator"]
+        return (g["kind"], g["seed"], g["n_streets"], len(m["views"])) == (
+            "city",
+            seed,
+            streets,
+            streets * images_per_street,
+        )
+    except (OSError, ValueError, KeyError, TypeError):
+        return False

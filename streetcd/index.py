@@ -1,0 +1,722 @@
+"""The change index: one SQLite file that lists the flagged views, by segment, with their
+changed regions located in 3D (DESIGN.md, data flow steps 5–6).
+
+Tables
+------
+``meta``      key/value: ``schema_version``, ``crs`` (the CRS every coordinate is in).
+``runs``      one row per run: when, its parameter hash, counts, status.
+``segments``  planned street segments: stable id, polyline (JSON), bbox in the CRS.
+``views``     every processed view, keyed by name: the input hash and parameter hash it was
+              processed with, ``done`` or ``failed`` (with the error), whether flagged. A view
+              whose hashes match is not processed again; this is what makes runs incremental.
+``flagged``   flagged views only: segment, score, changed fraction, region count, mask path.
+``regions``   change regions of flagged views: centroid and box in the CRS, dominant class of
+              the old cloud there.
+``segments_rtree``, ``regions_rtree``  R*Trees over the x/y boxes of segments and regions.
+
+The index holds the current state: one row per view name, its latest result. Writes are one
+transaction per batch (:meth:`ChangeIndex.publish`), so a run killed at any moment leaves
+whole batches or nothing, and publishing the same outcome twice changes nothing.
+
+The database runs in WAL mode, so queries read while a run writes. Timestamps are UTC ISO
+8601 strings (``2026-11-22T10:00:00Z``), which compare correctly as text.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from streetcd.errors import CRSMismatchError, InputError, MissingInputError
+
+SCHEMA_VERSION = "2"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS runs (
+    run_id TEXT PRIMARY KEY,
+    started_at TEXT NOT NULL,
+    finished_at TEXT,
+    status TEXT NOT NULL,
+    params_hash TEXT,
+    n_planned INTEGER, n_skipped INTEGER, n_done INTEGER, n_failed INTEGER, n_flagged INTEGER,
+    config TEXT
+);
+CREATE TABLE IF NOT EXISTS segments (
+    id INTEGER PRIMARY KEY,
+    segment_id TEXT NOT NULL UNIQUE,
+    n_views INTEGER NOT NULL,
+    length_m REAL NOT NULL,
+    min_x REAL NOT NULL, min_y REAL NOT NULL, max_x REAL NOT NULL, max_y REAL NOT NULL,
+    polyline TEXT NOT NULL,
+    views TEXT NOT NULL,
+    first_run TEXT
+);
+CREATE VIRTUAL TABLE IF NOT EXISTS segments_rtree USING rtree(id, min_x, max_x, min_y, max_y);
+CREATE TABLE IF NOT EXISTS views (
+    view TEXT PRIMARY KEY,
+    input_hash TEXT NOT NULL,
+    params_hash TEXT NOT NULL,
+    segment_id TEXT,
+    status TEXT NOT NULL CHECK (status IN ('done', 'failed')),
+    error TEXT,
+    flagged INTEGER NOT NULL DEFAULT 0,
+    center_x REAL, center_y REAL, center_z REAL,
+    detect_s REAL, total_s REAL, cpu_s REAL,  -- seconds: detector, whole view, its CPU
+    run_id TEXT, processed_at TEXT
+);
+CREATE TABLE IF NOT EXISTS flagged (
+    id INTEGER PRIMARY KEY,
+    view TEXT NOT NULL UNIQUE REFERENCES views(view),
+    segment_id TEXT,
+    score REAL NOT NULL,
+    changed_fraction REAL NOT NULL,
+    n_regions INTEGER NOT NULL,
+    mask_path TEXT,
+    overlay_path TEXT,
+    run_id TEXT,
+    detected_at TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS flagged_segment ON flagged(segment_id);
+CREATE INDEX IF NOT EXISTS flagged_score ON flagged(score);
+CREATE INDEX IF NOT EXISTS flagged_detected ON flagged(detected_at);
+CREATE TABLE IF NOT EXISTS regions (
+    id INTEGER PRIMARY KEY,
+    flagged_id INTEGER NOT NULL REFERENCES flagged(id),
+    label INTEGER NOT NULL,
+    pixels INTEGER NOT NULL,
+    score REAL NOT NULL,
+    x REAL, y REAL, z REAL,  -- NULL: no pixel of the region has a surface behind it
+    min_x REAL, min_y REAL, min_z REAL,
+    max_x REAL, max_y REAL, max_z REAL,
+    dominant_class INTEGER NOT NULL,
+    UNIQUE (flagged_id, label)
+);
+CREATE INDEX IF NOT EXISTS regions_flagged ON regions(flagged_id);
+CREATE VIRTUAL TABLE IF NOT EXISTS regions_rtree USING rtree(id, min_x, max_x, min_y, max_y);
+"""
+
+
+def utc_now() -> str:
+    """Now as ``YYYY-MM-DDTHH:MM:SSZ`` (UTC, seconds), the index's timestamp format."""
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def parse_since(text: str) -> str:
+    """A user's date or date-time (ISO 8601; no zone means UTC) in the index's format."""
+    try:
+        when = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise InputError(f"--since {text!r} is not an ISO date (YYYY-MM-DD[THH:MM[:SS]])") from None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=UTC)
+    return when.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+# --- records ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RegionRecord:
+    """One changed region located in 3D; coordinates are metres in the CRS.
+
+    centroid, bbox_min, bbox_max are None when the region could not be located (none of its
+    pixels has a reference surface behind it).
+    """
+
+    label: int
+    pixels: int
+    score: float
+    centroid: tuple[float, float, float] | None
+    bbox_min: tuple[float, float, float] | None
+    bbox_max: tuple[float, float, float] | None
+    dominant_class: int
+
+    @property
+    def located(self) -> bool:
+        return self.centroid is not None and self.bbox_min is not None and self.bbox_max is not None
+
+
+@dataclass(frozen=True)
+class ViewRecord:
+    """What processing one view produced, as the index stores it.
+
+    status is ``"done"`` or ``"failed"`` (then ``error`` says why, naming the file or view).
+    A view is flagged when ``flagged`` is true; only then are score, regions and the mask
+    path listed in the ``flagged`` table. ``center`` is the camera centre in the CRS.
+    """
+
+    view: str
+    input_hash: str
+    params_hash: str
+    segment_id: str | None
+    status: str
+    error: str | None = None
+    flagged: bool = False
+    score: float = 0.0
+    changed_fraction: float = 0.0
+    regions: tuple[RegionRecord, ...] = ()
+    mask_path: str | None = None
+    overlay_path: str | None = None
+    center: tuple[float, float, float] | None = None
+    detect_s: float | None = None
+    total_s: float | None = None
+    cpu_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.status not in ("done", "failed"):
+            raise InputError(f"view {self.view!r}: status {self.status!r} must be done or failed")
+
+
+@dataclass(frozen=True)
+class FlaggedRow:
+    """A row of a query: one flagged view with its regions (coordinates in the CRS)."""
+
+    view: str
+    segment_id: str | None
+    score: float
+    changed_fraction: float
+    n_regions: int
+    mask_path: str | None
+    overlay_path: str | None
+    detected_at: str
+    center: tuple[float, float, float] | None
+    regions: tuple[RegionRecord, ...] = field(default=())
+
+
+@dataclass(frozen=True)
+class SegmentRow:
+    segment_id: str
+    n_views: int
+    length_m: float
+    bbox: tuple[float, float, float, float]
+    polyline: list[list[float]]
+
+
+# --- the index ----------------------------------------------------------------------------
+
+
+class ChangeIndex:
+    """An open change index (a SQLite file). Use as a context manager, or call close()."""
+
+    def __init__(self, path: str | Path, *, create: bool = True, timeout_s: float = 60.0):
+        self.path = Path(path)
+        if not create and not self.path.exists():
+            raise MissingInputError(f"change index not found: {self.path}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # isolation_level=None: we open transactions ourselves, one per unit of work.
+        self.conn = sqlite3.connect(
+            self.path, timeout=timeout_s, isolation_level=None, check_same_thread=False
+        )
+        self.conn.row_factory = sqlite3.Row
+        try:
+            self.conn.execute("PRAGMA journal_mode=WAL")
+            self.conn.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable per commit
+            if create:
+                with self.transaction():
+                    self._create()
+            version = self._meta("schema_version")
+        except sqlite3.DatabaseError as exc:
+            self.conn.close()
+            raise InputError(f"{self.path}: not a streetcd change index ({exc})") from None
+        if version != SCHEMA_VERSION:
+            self.conn.close()
+            raise InputError(f"{self.path}: schema_version {version!r}, expected {SCHEMA_VERSION}")
+
+    def _create(self) -> None:
+        for statement in _SCHEMA.split(";"):
+            if statement.strip():
+                self.conn.execute(statement)
+        self.conn.execute(
+            "INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (SCHEMA_VERSION,)
+        )
+
+    def __enter__(self) -> ChangeIndex:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.conn.close()
+
+    def transaction(self) -> _Transaction:
+        return _Transaction(self.conn)
+
+    def _meta(self, key: str) -> str | None:
+        row = self.conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    @property
+    def crs(self) -> str | None:
+        """The CRS of every coordinate in the index, or None for a local frame."""
+        return self._meta("crs")
+
+    def set_crs(self, crs: str | None) -> None:
+        """Record the CRS; CRSMismatchError if the index already holds another one."""
+        if crs is None:
+            return
+        with self.transaction():
+            have = self._meta("crs")
+            if have is not None and have != crs:
+                raise CRSMismatchError(f"{self.path}: index is in {have}, the new views in {crs}")
+            self.conn.execute("INSERT OR IGNORE INTO meta VALUES ('crs', ?)", (crs,))
+
+    # --- runs -----------------------------------------------------------------------------
+
+    def begin_run(self, run_id: str, params_hash: str, config: dict | None = None) -> None:
+        with self.transaction():
+            self.conn.execute(
+                "INSERT INTO runs (run_id, started_at, status, params_hash, config) "
+                "VALUES (?, ?, 'running', ?, ?)",
+                (run_id, utc_now(), params_hash, json.dumps(config or {}, sort_keys=True)),
+            )
+
+    def finish_run(self, run_id: str, status: str = "finished", **counts: int) -> None:
+        cols = ("n_planned", "n_skipped", "n_done", "n_failed", "n_flagged")
+        unknown = set(counts) - set(cols)
+        if unknown:
+            raise InputError(f"finish_run: unknown count(s) {sorted(unknown)}")
+        with self.transaction():
+            self.conn.execute(
+                "UPDATE runs SET finished_at = ?, status = ?, "
+                + ", ".join(f"{c} = ?" for c in cols)
+                + " WHERE run_id = ?",
+                (utc_now(), status, *(counts.get(c) for c in cols), run_id),
+            )
+
+    # --- segments -------------------------------------------------------------------------
+
+    def add_segments(self, segments: Iterable, run_id: str | None = None) -> None:
+        """Insert planned segments (:class:`streetcd.segments.Segment`); known ids are kept."""
+        with self.transaction():
+            for s in segments:
+                cur = self.conn.execute(
+                    "INSERT OR IGNORE INTO segments (segment_id, n_views, length_m, min_x, min_y,"
+                    " max_x, max_y, polyline, views, first_run) VALUES (?,?,?,?,?,?,?,?,?,?)",
+                    (
+                        s.id,
+                        len(s.views),
+                        float(s.length_m),
+                        *map(float, s.bbox),
+                        json.dumps([[round(float(x), 4) for x in p] for p in s.polyline]),
+                        json.dumps(list(s.views)),
+                        run_id,
+                    ),
+                )
+                if cur.rowcount:
+                    mnx, mny, mxx, mxy = map(float, s.bbox)
+                    self.conn.execute(
+                        "INSERT INTO segments_rtree VALUES (?, ?, ?, ?, ?)",
+                        (cur.lastrowid, mnx, mxx, mny, mxy),
+                    )
+
+    # --- views ----------------------------------------------------------------------------
+
+    def processed(self) -> dict[str, tuple[str, str, str]]:
+        """{view: (input_hash, params_hash, status)} for every view the index knows."""
+        rows = self.conn.execute("SELECT view, input_hash, params_hash, status FROM views")
+        return {r[0]: (r[1], r[2], r[3]) for r in rows}
+
+    def publish(self, run_id: str, records: Sequence[ViewRecord]) -> None:
+        """Write the outcomes of one batch in one transaction (idempotent per view)."""
+        now = utc_now()
+        with self.transaction():
+            for r in records:
+                self._drop_flagged(r.view)
+                c = r.center or (None, None, None)
+                self.conn.execute(
+                    "INSERT OR REPLACE INTO views VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    (
+                        r.view,
+                        r.input_hash,
+                        r.params_hash,
+                        r.segment_id,
+                        r.status,
+                        r.error,
+                        int(r.flagged),
+                        *c,
+                        r.detect_s,
+                        r.total_s,
+                        r.cpu_s,
+                        run_id,
+                        now,
+                    ),
+                )
+                if r.flagged:
+                    self._add_flagged(run_id, now, r)
+
+    def _drop_flagged(self, view: str) -> None:
+        row = self.conn.execute("SELECT id FROM flagged WHERE view = ?", (view,)).fetchone()
+        if row is None:
+            return
+        self.conn.execute(
+            "DELETE FROM regions_rtree WHERE id IN (SELECT id FROM regions WHERE flagged_id = ?)",
+            (row[0],),
+        )
+        self.conn.execute("DELETE FROM regions WHERE flagged_id = ?", (row[0],))
+        self.conn.execute("DELETE FROM flagged WHERE id = ?", (row[0],))
+
+    def _add_flagged(self, run_id: str, now: str, r: ViewRecord) -> None:
+        cur = self.conn.execute(
+            "INSERT INTO flagged (view, segment_id, score, changed_fraction, n_regions, mask_path,"
+            " overlay_path, run_id, detected_at) VALUES (?,?,?,?,?,?,?,?,?)",
+            (
+                r.view,
+                r.segment_id,
+                float(r.score),
+                float(r.changed_fraction),
+                len(r.regions),
+                r.mask_path,
+                r.overlay_path,
+                run_id,
+                now,
+            ),
+        )
+        flagged_id = cur.lastrowid
+        for g in r.regions:
+            coords: list[float | None] = [None] * 9
+            if g.centroid is not None and g.bbox_min is not None and g.bbox_max is not None:
+                coords = [*g.centroid, *g.bbox_min, *g.bbox_max]
+            cur = self.conn.execute(
+                "INSERT INTO regions (flagged_id, label, pixels, score, x, y, z, min_x, min_y,"
+                " min_z, max_x, max_y, max_z, dominant_class) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                (
+                    flagged_id,
+                    int(g.label),
+                    int(g.pixels),
+                    float(g.score),
+                    *(None if c is None else float(c) for c in coords),
+                    int(g.dominant_class),
+                ),
+            )
+            if g.bbox_min is not None and g.bbox_max is not None:
+                lo, hi = g.bbox_min, g.bbox_max
+                self.conn.execute(
+                    "INSERT INTO regions_rtree VALUES (?, ?, ?, ?, ?)",
+                    (cur.lastrowid, lo[0], hi[0], lo[1], hi[1]),
+                )
+
+    # --- queries --------------------------------------------------------------------------
+
+    def query(
+        self,
+        *,
+        segment: str | None = None,
+        bbox: tuple[float, float, float, float] | None = None,
+        since: str | None = None,
+        min_score: float | None = None,
+    ) -> list[FlaggedRow]:
+        """Flagged views matching every filter given, ordered by segment then view.
+
+        segment : a segment id. bbox : (min_x, min_y, max_x, max_y) in the index's CRS; a
+        view matches when one of its located regions' x/y boxes intersects it. since : ISO date or
+        date-time; views detected (published) at or after it. min_score : score ≥ this.
+        A view with no located region matches the box when its camera centre lies inside.
+        """
+        where: list[str] = []
+        args: list[Any] = []
+        if segment is not None:
+            where.append("f.segment_id = ?")
+            args.append(segment)
+        if since is not None:
+            where.append("f.detected_at >= ?")
+            args.append(parse_since(since))
+        if min_score is not None:
+            where.append("f.score >= ?")
+            args.append(float(min_score))
+        if bbox is not None:
+            mnx, mny, mxx, mxy = _check_bbox(bbox)
+            where.append(
+                "(f.id IN (SELECT g.flagged_id FROM regions g JOIN regions_rtree t ON t.id = g.id"
+                " WHERE t.max_x >= ? AND t.min_x <= ? AND t.max_y >= ? AND t.min_y <= ?)"
+                " OR (NOT EXISTS (SELECT 1 FROM regions g WHERE g.flagged_id = f.id AND g.x IS NOT NULL)"
+                " AND v.center_x BETWEEN ? AND ? AND v.center_y BETWEEN ? AND ?))"
+            )
+            args += [mnx, mxx, mny, mxy, mnx, mxx, mny, mxy]
+        sql = (
+            "SELECT f.*, v.center_x, v.center_y, v.center_z FROM flagged f "
+            "JOIN views v ON v.view = f.view"
+            + (" WHERE " + " AND ".join(where) if where else "")
+            + " ORDER BY f.segment_id, f.view"
+        )
+        rows = self.conn.execute(sql, args).fetchall()
+        return [self._row(r) for r in rows]
+
+    def _row(self, r: sqlite3.Row) -> FlaggedRow:
+        def xyz(g: sqlite3.Row, a: str, b: str, c: str) -> tuple[float, float, float] | None:
+            return None if g[a] is None else (g[a], g[b], g[c])
+
+        regions = tuple(
+            RegionRecord(
+                g["label"],
+                g["pixels"],
+                g["score"],
+                xyz(g, "x", "y", "z"),
+                xyz(g, "min_x", "min_y", "min_z"),
+                xyz(g, "max_x", "max_y", "max_z"),
+                g["dominant_class"],
+            )
+            for g in self.conn.execute(
+                "SELECT * FROM regions WHERE flagged_id = ? ORDER BY label", (r["id"],)
+            )
+        )
+        center = None if r["center_x"] is None else (r["center_x"], r["center_y"], r["center_z"])
+        return FlaggedRow(
+            r["view"],
+            r["segment_id"],
+            r["score"],
+            r["changed_fraction"],
+            r["n_regions"],
+            r["mask_path"],
+            r["overlay_path"],
+            r["detected_at"],
+            center,
+            regions,
+        )
+
+    def segments(
+        self,
+        ids: Iterable[str] | None = None,
+        bbox: tuple[float, float, float, float] | None = None,
+    ) -> list[SegmentRow]:
+        """Segments by id and/or whose box intersects ``bbox`` (R*Tree), ordered by id."""
+        where: list[str] = []
+        args: list[Any] = []
+        if ids is not None:
+            ids = list(ids)
+            where.append(f"s.segment_id IN ({','.join('?' * len(ids))})")
+            args += ids
+        if bbox is not None:
+            mnx, mny, mxx, mxy = _check_bbox(bbox)
+            where.append(
+                "s.id IN (SELECT id FROM segments_rtree WHERE max_x >= ? AND min_x <= ?"
+                " AND max_y >= ? AND min_y <= ?)"
+            )
+            args += [mnx, mxx, mny, mxy]
+        sql = "SELECT * FROM segments s" + (" WHERE " + " AND ".join(where) if where else "")
+        rows = self.conn.execute(sql + " ORDER BY s.segment_id", args).fetchall()
+        return [
+            SegmentRow(
+                r["segment_id"],
+                r["n_views"],
+                r["length_m"],
+                (r["min_x"], r["min_y"], r["max_x"], r["max_y"]),
+                json.loads(r["polyline"]),
+            )
+            for r in rows
+        ]
+
+    def failures(self) -> list[tuple[str, str]]:
+        """(view, error) of every failed view, by name."""
+        rows = self.conn.execute(
+            "SELECT view, error FROM views WHERE status = 'failed' ORDER BY view"
+        )
+        return [(r[0], r[1]) for r in rows]
+
+    def counts(self) -> dict[str, int]:
+        one = self.conn.execute
+        return {
+            "views": one("SELECT count(*) FROM views").fetchone()[0],
+            "done": one("SELECT count(*) FROM views WHERE status = 'done'").fetchone()[0],
+            "failed": one("SELECT count(*) FROM views WHERE status = 'failed'").fetchone()[0],
+            "flagged": one("SELECT count(*) FROM flagged").fetchone()[0],
+            "regions": one("SELECT count(*) FROM regions").fetchone()[0],
+            "segments": one("SELECT count(*) FROM segments").fetchone()[0],
+        }
+
+
+class _Transaction:
+    """``BEGIN IMMEDIATE`` … ``COMMIT`` (``ROLLBACK`` on error): one writer at a time, and a
+    killed process leaves either the whole unit or none of it."""
+
+    def __init__(self, conn: sqlite3.Connection):
+        self.conn = conn
+
+    def __enter__(self) -> sqlite3.Connection:
+        self.conn.execute("BEGIN IMMEDIATE")
+        return self.conn
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        self.conn.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+
+
+def _check_bbox(bbox: Sequence[float]) -> tuple[float, float, float, float]:
+    if len(bbox) != 4 or not all(math.isfinite(float(x)) for x in bbox):
+        raise InputError(f"bbox {bbox!r} must be four finite numbers min_x,min_y,max_x,max_y")
+    mnx, mny, mxx, mxy = (float(x) for x in bbox)
+    if mnx > mxx or mny > mxy:
+        raise InputError(f"bbox {bbox!r}: min_x must be <= max_x and min_y <= max_y")
+    return mnx, mny, mxx, mxy
+
+
+# --- comparing indexes --------------------------------------------------------------------
+
+
+def _canon(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.9g}"
+    return repr(value)
+
+
+def canonical_dump(path: str | Path) -> list[str]:
+    """The index's content as sorted text lines, without what differs between equivalent
+    runs: run ids, timestamps, durations, integer row ids, the runs table, and the folder of
+    mask paths (only the file name is kept). Floats are printed to 9 significant digits.
+
+    Two runs over the same inputs, one interrupted and resumed, give equal dumps.
+    """
+    with ChangeIndex(path, create=False) as idx:
+        q = idx.conn.execute
+        lines = [f"meta {k} {v}" for k, v in q("SELECT key, value FROM meta")]
+        for r in q(
+            "SELECT s.segment_id, s.n_views, s.length_m, s.min_x, s.min_y, s.max_x, "
+            "s.max_y, s.polyline, s.views, t.min_x, t.max_x, t.min_y, t.max_y "
+            "FROM segments s LEFT JOIN segments_rtree t ON t.id = s.id"
+        ):
+            lines.append("segment " + " ".join(_canon(x) for x in r))
+        for r in q(
+            "SELECT view, input_hash, params_hash, segment_id, status, error, flagged, "
+            "center_x, center_y, center_z FROM views"
+        ):
+            lines.append("view " + " ".join(_canon(x) for x in r))
+        for r in q(
+            "SELECT view, segment_id, score, changed_fraction, n_regions, mask_path, "
+            "overlay_path FROM flagged"
+        ):
+            vals = list(r)
+            vals[5:7] = [None if p is None else Path(p).name for p in vals[5:7]]
+            lines.append("flagged " + " ".join(_canon(x) for x in vals))
+        for r in q(
+            "SELECT f.view, g.label, g.pixels, g.score, g.x, g.y, g.z, g.min_x, g.min_y, "
+            "g.min_z, g.max_x, g.max_y, g.max_z, g.dominant_class, t.min_x, t.max_x, "
+            "t.min_y, t.max_y FROM regions g JOIN flagged f ON f.id = g.flagged_id "
+            "LEFT JOIN regions_rtree t ON t.id = g.id"
+        ):
+            lines.append("region " + " ".join(_canon(x) for x in r))
+        n_rtree = q(
+            "SELECT (SELECT count(*) FROM segments_rtree), (SELECT count(*) FROM regions_rtree)"
+        ).fetchone()
+        lines.append(f"rtree_rows {n_rtree[0]} {n_rtree[1]}")
+    return sorted(lines)
+
+
+# --- GeoJSON ------------------------------------------------------------------------------
+
+
+def to_geojson(
+    rows: Sequence[FlaggedRow],
+    segments: Sequence[SegmentRow],
+    crs: str | None,
+    *,
+    wgs84: bool = True,
+) -> dict:
+    """A GeoJSON FeatureCollection of flagged segments and change regions.
+
+    Segments are LineStrings (a Point for a one-view segment) with ``kind: "segment"``;
+    regions are Polygons (their x/y box) with ``kind: "region"`` and their z range and
+    dominant class in the properties; a flagged view without a located region is a Point at
+    its camera with ``kind: "view"``.
+
+    With ``wgs84`` and a known ``crs``, coordinates are reprojected to EPSG:4326 longitude /
+    latitude (RFC 7946, what QGIS expects). Otherwise they stay in ``crs`` and, when it is
+    known, the legacy GeoJSON-2008 ``crs`` member names it. The source CRS is always in
+    the foreign member ``streetcd.source_crs``.
+    """
+    transform = _to_wgs84(crs) if (wgs84 and crs is not None) else (lambda xs, ys: (xs, ys))
+
+    def pts(coords: Sequence[Sequence[float]]) -> list[list[float]]:
+        xs, ys = transform([c[0] for c in coords], [c[1] for c in coords])
+        nd = 7 if (wgs84 and crs is not None) else 3
+        return [[round(float(x), nd), round(float(y), nd)] for x, y in zip(xs, ys, strict=True)]
+
+    by_segment: dict[str | None, list[FlaggedRow]] = {}
+    for r in rows:
+        by_segment.setdefault(r.segment_id, []).append(r)
+    features: list[dict[str, Any]] = []
+    for s in segments:
+        flagged = by_segment.get(s.segment_id, [])
+        line = pts(s.polyline)
+        geometry = (
+            {"type": "LineString", "coordinates": line}
+            if len(line) > 1
+            else {"type": "Point", "coordinates": line[0]}
+        )
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": geometry,
+                "properties": {
+                    "kind": "segment",
+                    "segment_id": s.segment_id,
+                    "n_views": s.n_views,
+                    "length_m": round(s.length_m, 2),
+                    "n_flagged": len(flagged),
+                    "max_score": max((r.score for r in flagged), default=None),
+                },
+            }
+        )
+    from streetcd.classes import NAMES
+
+    for r in rows:
+        base = {
+            "view": r.view,
+            "segment_id": r.segment_id,
+            "view_score": r.score,
+            "changed_fraction": r.changed_fraction,
+            "mask_path": r.mask_path,
+            "detected_at": r.detected_at,
+        }
+        located = [g for g in r.regions if g.located]
+        if not located and r.center is not None:
+            features.append(
+                {
+                    "type": "Feature",
+                    "properties": {"kind": "view", **base},
+                    "geometry": {"type": "Point", "coordinates": pts([r.center])[0]},
+                }
+            )
+        for g in located:
+            (x0, y0, z0), (x1, y1, z1) = g.bbox_min, g.bbox_max  # type: ignore[misc]
+            ring = pts([(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)])
+            features.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "Polygon", "coordinates": [ring]},
+                    "properties": {
+                        "kind": "region",
+                        **base,
+                        "label": g.label,
+                        "score": g.score,
+                        "pixels": g.pixels,
+                        "dominant_class": g.dominant_class,
+                        "class_name": NAMES.get(g.dominant_class, "unknown"),
+                        "centroid": [round(v, 3) for v in g.centroid or ()],
+                        "min_z": z0,
+                        "max_z": z1,
+                    },
+                }
+            )
+    out: dict = {"type": "FeatureCollection", "features": features, "streetcd": {"source_crs": crs}}
+    if crs is not None and not wgs84:
+        out["crs"] = {"type": "name", "properties": {"name": _ogc_urn(crs)}}
+    return out
+
+
+def _to_wgs84(crs: str) -> Any:
+    import pyproj
+
+    return pyproj.Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform
+
+
+def _ogc_urn(crs: str) -> str:
+    """``EPSG:32648`` → ``urn:ogc:def:crs:EPSG::32648`` (the legacy ``crs`` member's form)."""
+    if crs.upper().startswith("EPSG:"):
+        return f"urn:ogc:def:crs:EPSG::{crs.split(':', 1)[1]}"
+    return crs

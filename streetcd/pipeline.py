@@ -1,0 +1,715 @@
+"""The nightly workflow as library functions: plan → detect batches on Dask → publish.
+
+The Prefect flow (``flows/nightly.py``) and the CLI call these; nothing here imports Prefect.
+
+* :func:`plan_run` reads the poses and the images folder, plans street segments, hashes every
+  view's inputs and skips the views the index already holds with the same input and
+  parameter hashes; it registers the run, the segments and the views that fail before any
+  detection (an image without a pose, a pose without an image) in the index.
+* :func:`detect_batch` runs on a Dask worker: it crops each view's cloud from the tile store
+  itself, reads the images itself, runs the detector and writes masks and overlays
+  atomically. Only the small :class:`~streetcd.index.ViewRecord` comes back.
+* :func:`detect_segment` submits one segment's batches (pinned, loosely, to one worker so
+  its tile cache pays) and publishes each batch in one index transaction as it completes.
+* :func:`run_pipeline` chains them for one run without Prefect (tests, benchmarks).
+
+Views that fail (corrupt image, no points in view, bad pose) are recorded with the error
+and the run goes on. A batch lost with its worker is recomputed by Dask elsewhere.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import threading
+import time
+import traceback
+import uuid
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from streetcd.errors import CorruptFileError, CRSMismatchError, InputError, MissingInputError
+from streetcd.index import ChangeIndex, RegionRecord, ViewRecord
+from streetcd.params import DetectParams, params_to_dict
+from streetcd.segments import Segment, SegmentParams, plan_segments
+from streetcd.views import View
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+SCHEDULER_ENV = "STREETCD_SCHEDULER"
+
+
+@dataclass(frozen=True)
+class PipelineParams:
+    """Everything that decides a run's results, besides the inputs.
+
+    batch_size : views per Dask task (consecutive views of one segment share tiles).
+    min_changed_fraction : a view is flagged when more of its pixels than this changed.
+    write_overlays : also write a JPEG of the image with the mask tinted red.
+    """
+
+    detect: DetectParams = field(default_factory=DetectParams)
+    segments: SegmentParams = field(default_factory=SegmentParams)
+    batch_size: int = 8
+    min_changed_fraction: float = 0.0
+    write_overlays: bool = True
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1:
+            raise InputError(f"batch_size = {self.batch_size} must be >= 1")
+        if not 0.0 <= self.min_changed_fraction < 1.0:
+            raise InputError(
+                f"min_changed_fraction = {self.min_changed_fraction} must be in [0, 1)"
+            )
+
+    def hash(self) -> str:
+        """16 hex digits over every parameter that changes a view's result or its segment."""
+        blob = {
+            "detect": params_to_dict(self.detect),
+            "segments": dataclasses.asdict(self.segments),
+            "min_changed_fraction": self.min_changed_fraction,
+            "write_overlays": self.write_overlays,
+        }
+        return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class ViewTask:
+    """One view's work: the view (pose in the CRS, image path), its neighbours, its hash."""
+
+    view: View
+    neighbours: tuple[View, ...]
+    segment_id: str
+    input_hash: str
+
+
+@dataclass(frozen=True)
+class Batch:
+    """Consecutive views of one segment, processed by one Dask task."""
+
+    segment_id: str
+    number: int
+    tasks: tuple[ViewTask, ...]
+    store: str
+    out_dir: str
+    params: PipelineParams
+    params_hash: str
+
+    @property
+    def key(self) -> str:
+        return f"detect-{self.segment_id}-{self.number}"
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a run will do. ``batches`` hold only the views still to process."""
+
+    run_id: str
+    index: str
+    crs: str | None
+    segments: tuple[Segment, ...]
+    batches: tuple[Batch, ...]
+    n_views: int
+    n_skipped: int
+    failed_at_plan: tuple[tuple[str, str], ...]  # (view, error) of views failed in planning
+    params_hash: str
+
+    @property
+    def n_todo(self) -> int:
+        return sum(len(b.tasks) for b in self.batches)
+
+    def batches_of(self, segment_id: str) -> tuple[Batch, ...]:
+        return tuple(b for b in self.batches if b.segment_id == segment_id)
+
+    @property
+    def segments_todo(self) -> tuple[str, ...]:
+        seen: dict[str, None] = {}
+        for b in self.batches:
+            seen.setdefault(b.segment_id)
+        return tuple(seen)
+
+
+@dataclass
+class RunSummary:
+    """Counts and times of one run: ``detect_s`` the sum of per-view detector times,
+    ``view_s`` of whole per-view work (read, crop, detect, write), ``cpu_s`` its CPU time."""
+
+    run_id: str
+    n_views: int = 0
+    n_skipped: int = 0
+    n_done: int = 0
+    n_failed: int = 0
+    n_flagged: int = 0
+    n_lost: int = 0  # views of batches that never came back (not published; next run retries)
+    detect_s: float = 0.0
+    view_s: float = 0.0
+    cpu_s: float = 0.0
+    wall_s: float = 0.0
+    failures: list[tuple[str, str]] = field(default_factory=list)
+
+    def add(self, records: Sequence[ViewRecord]) -> None:
+        for r in records:
+            if r.status == "done":
+                self.n_done += 1
+            else:
+                self.n_failed += 1
+                self.failures.append((r.view, r.error or ""))
+            self.n_flagged += int(r.flagged)
+            self.detect_s += r.detect_s or 0.0
+            self.view_s += r.total_s or 0.0
+            self.cpu_s += r.cpu_s or 0.0
+
+    def merge(self, other: RunSummary) -> None:
+        for name in ("n_done", "n_failed", "n_flagged", "n_lost", "detect_s", "view_s", "cpu_s"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        self.failures += other.failures
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+# --- progress -----------------------------------------------------------------------------
+
+Listener = Callable[[str, Any], None]
+_listeners: list[Listener] = []
+_listeners_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def progress_listener(fn: Listener) -> Iterator[None]:
+    """Call ``fn(event, payload)`` on progress, in this process: ``("planned", Plan)`` once
+    planning is done, ``("batch", list[ViewRecord])`` after each batch is published.
+
+    The CLI draws its progress bar with this while the flow runs; the flow knows nothing of it.
+    """
+    with _listeners_lock:
+        _listeners.append(fn)
+    try:
+        yield
+    finally:
+        with _listeners_lock:
+            _listeners.remove(fn)
+
+
+def _notify(event: str, payload: Any) -> None:
+    with _listeners_lock:
+        listeners = list(_listeners)
+    for fn in listeners:
+        fn(event, payload)
+
+
+# --- hashing ------------------------------------------------------------------------------
+
+
+def file_hash(path: Path, chunk: int = 1 << 20) -> str:
+    """SHA-256 (16 hex digits) of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def _view_key(view: View, image_hash: str) -> str:
+    i = view.intrinsics
+    pose = np.concatenate([view.pose.R.ravel(), view.pose.t]).round(9)
+    return (
+        f"{view.name}|{image_hash}|{pose.tolist()}|{i.width},{i.height},{i.fx!r},{i.fy!r},"
+        f"{i.cx!r},{i.cy!r},{list(i.dist)}"
+    )
+
+
+def tiles_fingerprint(store: Any, center: np.ndarray, radius_m: float) -> str:
+    """Hash of the tiles (id, fragments, counts) within ``radius_m`` of ``center`` (CRS).
+
+    The view's cloud is cropped from a subset of these (the frustum is range-limited), so
+    ingesting a new MLS file changes the hash of exactly the views it can affect.
+    """
+    c = np.asarray(center, dtype=np.float64)
+    tiles = store.tiles_in_bbox(c[0] - radius_m, c[1] - radius_m, c[0] + radius_m, c[1] + radius_m)
+    parts = sorted(f"{t.id}:" + ",".join(f"{f.key}/{f.count}" for f in t.fragments) for t in tiles)
+    return _hash_text(";".join(parts))
+
+
+# --- planning -----------------------------------------------------------------------------
+
+
+def list_images(folder: str | Path) -> dict[str, Path]:
+    """{file name: path} of the images directly in ``folder``."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise MissingInputError(f"images folder not found: {folder}")
+    return {
+        p.name: p
+        for p in sorted(folder.iterdir())
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+    }
+
+
+def plan_run(
+    images: str | Path,
+    poses: str | Path,
+    store: str | Path,
+    index: str | Path,
+    out: str | Path,
+    params: PipelineParams = PipelineParams(),
+    *,
+    retry_failed: bool = False,
+    run_id: str | None = None,
+) -> Plan:
+    """Plan a run and register it in the index (run row, segments, plan-time failures).
+
+    images : folder of the new images. poses : a pose file (COLMAP or OPK CSV) naming them.
+    store : the tile store of the reference cloud. out : where masks and overlays go.
+    A view is skipped when the index holds it with the same input and parameter hashes
+    (``done``, or ``failed`` unless ``retry_failed``).
+    """
+    from streetcd.io.las import crs_string
+    from streetcd.io.poses import read_poses
+    from streetcd.tiles import TileStore
+
+    run_id = run_id or time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:6]
+    # Workers run elsewhere (another cwd, another machine with the same mounts): absolute paths.
+    images, poses, store, out = (Path(p).resolve() for p in (images, poses, store, out))
+    files = list_images(images)
+    pose_set = read_poses(poses, image_dir=images)
+    tile_store = TileStore.open(store)
+    crs = crs_string(pose_set.crs) if pose_set.crs else None
+    store_crs = crs_string(tile_store.crs) if tile_store.crs else None
+    if crs and store_crs and crs != store_crs:
+        raise CRSMismatchError(f"poses {poses} are in {crs}, tile store {store} in {store_crs}")
+    crs = crs or store_crs
+    reach_m = params.detect.max_range_m + 2.0  # crop buffer (1 m) and some slack
+    phash = params.hash()
+
+    failed: list[ViewRecord] = []
+    views: list[View] = []
+    for v in pose_set.views:
+        if v.image is not None and v.image.name in files:
+            views.append(v)
+        else:
+            failed.append(
+                ViewRecord(
+                    v.name,
+                    _hash_text(_view_key(v, "missing")),
+                    phash,
+                    None,
+                    "failed",
+                    f"image not found: {Path(images) / v.name}",
+                    center=_xyz(v.center),
+                )
+            )
+    posed = {v.image.name for v in views if v.image is not None}
+    for name, path in files.items():
+        if name not in posed:
+            failed.append(
+                ViewRecord(
+                    name,
+                    file_hash(path),
+                    phash,
+                    None,
+                    "failed",
+                    f"no pose for image {name} in {poses}",
+                )
+            )
+
+    image_hash = {v.name: file_hash(v.image) for v in views if v.image is not None}
+    by_name = {v.name: v for v in views}
+    segments = plan_segments(views, params.segments)
+
+    with ChangeIndex(index) as idx:
+        idx.set_crs(crs)
+        known = idx.processed()
+
+        def skip(name: str, input_hash: str) -> bool:
+            have = known.get(name)
+            return (
+                have is not None
+                and have[:2] == (input_hash, phash)
+                and (have[2] == "done" or not retry_failed)
+            )
+
+        batches, n_skipped = [], 0
+        for seg in segments:
+            todo = []
+            for name, nbrs in zip(seg.views, seg.neighbours, strict=True):
+                v = by_name[name]
+                parts = [
+                    _view_key(v, image_hash[name]),
+                    tiles_fingerprint(tile_store, v.center, reach_m),
+                ]
+                parts += [_view_key(by_name[n], image_hash[n]) for n in nbrs]
+                h = _hash_text("\n".join(parts))
+                if skip(name, h):
+                    n_skipped += 1
+                else:
+                    todo.append(ViewTask(v, tuple(by_name[n] for n in nbrs), seg.id, h))
+            for k in range(0, len(todo), params.batch_size):
+                batches.append(
+                    Batch(
+                        seg.id,
+                        k // params.batch_size,
+                        tuple(todo[k : k + params.batch_size]),
+                        str(store),
+                        str(out),
+                        params,
+                        phash,
+                    )
+                )
+        new_failed = [r for r in failed if not skip(r.view, r.input_hash)]
+        n_skipped += len(failed) - len(new_failed)
+        idx.begin_run(
+            run_id,
+            phash,
+            {"images": str(images), "poses": str(poses), "store": str(store), "out": str(out)},
+        )
+        idx.add_segments(segments, run_id)
+        if new_failed:
+            idx.publish(run_id, new_failed)
+    plan = Plan(
+        run_id,
+        str(index),
+        crs,
+        tuple(segments),
+        tuple(batches),
+        len(views) + len(failed),
+        n_skipped,
+        tuple((r.view, r.error or "") for r in new_failed),
+        phash,
+    )
+    _notify("planned", plan)
+    return plan
+
+
+def _xyz(a: np.ndarray) -> tuple[float, float, float]:
+    return float(a[0]), float(a[1]), float(a[2])
+
+
+def _hash_text(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+# --- on a worker --------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=4)
+def _open_store(path: str) -> Any:
+    """One open TileStore per worker process and store, so its tile cache lives on."""
+    from streetcd.tiles import TileStore
+
+    return TileStore.open(path)
+
+
+class _ImageCache:
+    """The last few decoded images of this process (a view is its neighbours' neighbour)."""
+
+    def __init__(self, size: int = 16):
+        self.size = size
+        self.items: OrderedDict[tuple[str, float], np.ndarray] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, view: View) -> np.ndarray:
+        if view.image is None:
+            raise MissingInputError(f"view {view.name!r} has no image path")
+        path = Path(view.image)
+        try:
+            key = (str(path), path.stat().st_mtime)
+        except FileNotFoundError:
+            raise MissingInputError(f"image not found: {path}") from None
+        with self.lock:
+            if key in self.items:
+                self.items.move_to_end(key)
+                return self.items[key]
+        image = read_rgb(path, view)
+        with self.lock:
+            self.items[key] = image
+            while len(self.items) > self.size:
+                self.items.popitem(last=False)
+        return image
+
+
+_images = _ImageCache()
+
+
+def read_rgb(path: Path, view: View) -> np.ndarray:
+    """(H, W, 3) uint8 RGB image of ``view``; errors name the file."""
+    import cv2
+
+    data = np.fromfile(path, dtype=np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if image is None:
+        raise CorruptFileError(f"{path}: cannot be decoded as an image ({data.size} bytes)")
+    h, w = image.shape[:2]
+    i = view.intrinsics
+    if (w, h) != (i.width, i.height):
+        raise InputError(
+            f"{path}: image is {w}x{h} but the pose of {view.name!r} says {i.width}x{i.height}"
+        )
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def detect_batch(batch: Batch) -> list[ViewRecord]:
+    """Run the detector on every view of ``batch``; one record per view, failures included.
+
+    Runs on a Dask worker: opens the tile store (cached per process), crops each view's
+    cloud, reads the images, writes masks under ``out/masks/<segment>/`` atomically.
+    """
+    store = _open_store(batch.store)
+    return [_detect_one(batch, task, store) for task in batch.tasks]
+
+
+def _detect_one(batch: Batch, task: ViewTask, store: Any) -> ViewRecord:
+    from streetcd.crop import crop_for_view
+    from streetcd.detect import detect_view
+
+    view, p = task.view, batch.params
+    base: dict[str, Any] = dict(
+        view=view.name,
+        input_hash=task.input_hash,
+        params_hash=batch.params_hash,
+        segment_id=task.segment_id,
+        center=_xyz(view.center),
+    )
+    t0, c0 = time.perf_counter(), time.process_time()  # CPU time: the process, one view at a time
+    try:
+        image = _images.get(view)
+        neighbours = []
+        for n in task.neighbours:
+            try:
+                neighbours.append((_images.get(n), n))
+            except (InputError, MissingInputError) as exc:
+                log.warning("view %s: neighbour %s left out: %s", view.name, n.name, exc)
+        cloud = crop_for_view(store, view, max_range_m=p.detect.max_range_m)
+        t1 = time.perf_counter()
+        result = detect_view(image, view, neighbours, cloud, p.detect)
+        t2 = time.perf_counter()
+        flagged = bool(result.changed_fraction > p.min_changed_fraction)
+        mask_path = overlay_path = None
+        regions: tuple[RegionRecord, ...] = ()
+        if flagged:
+            mask_path, overlay_path = _write_outputs(batch, task, image, result.mask)
+            regions = tuple(_region_record(g, result.origin) for g in result.regions)
+        return ViewRecord(
+            **base,
+            status="done",
+            flagged=flagged,
+            score=float(result.score),
+            changed_fraction=float(result.changed_fraction),
+            regions=regions,
+            mask_path=mask_path,
+            overlay_path=overlay_path,
+            detect_s=t2 - t1,
+            total_s=time.perf_counter() - t0,
+            cpu_s=time.process_time() - c0,
+        )
+    except Exception as exc:  # a bad view fails alone; the run goes on
+        if not isinstance(exc, (InputError, MissingInputError, RuntimeError)):
+            log.error("view %s failed unexpectedly:\n%s", view.name, traceback.format_exc())
+        message = str(exc) if str(exc) else type(exc).__name__
+        return ViewRecord(
+            **base,
+            status="failed",
+            error=f"{type(exc).__name__}: {message}",
+            total_s=time.perf_counter() - t0,
+            cpu_s=time.process_time() - c0,
+        )
+
+
+def _region_record(g: Any, origin: np.ndarray) -> RegionRecord:
+    """A detector Region (local frame) as a RegionRecord in the CRS."""
+    o = np.asarray(origin, dtype=np.float64)
+    parts = [
+        np.asarray(a, dtype=np.float64).reshape(3) + o for a in (g.centroid, g.bbox_min, g.bbox_max)
+    ]
+    located = all(np.isfinite(p).all() for p in parts)  # else no surface behind it
+    c, lo, hi = (_xyz(p) if located else None for p in parts)
+    return RegionRecord(
+        int(g.label), int(g.pixels), float(g.score), c, lo, hi, int(g.dominant_class)
+    )
+
+
+def _write_outputs(
+    batch: Batch, task: ViewTask, image: np.ndarray, mask: np.ndarray
+) -> tuple[str, str | None]:
+    """Write ``mask`` (H, W) bool as a 0/255 PNG, and the overlay JPEG, atomically."""
+    import cv2
+
+    stem = Path(task.view.name).stem
+    folder = Path(batch.out_dir)
+    mask_path = folder / "masks" / task.segment_id / f"{stem}.mask.png"
+    _atomic_write(mask_path, _encode(".png", mask.astype(np.uint8) * 255))
+    if not batch.params.write_overlays:
+        return str(mask_path), None
+    tint = image.copy()
+    tint[mask] = (0.5 * tint[mask] + 0.5 * np.array([255, 0, 0])).astype(np.uint8)
+    overlay_path = folder / "overlays" / task.segment_id / f"{stem}.overlay.jpg"
+    _atomic_write(overlay_path, _encode(".jpg", cv2.cvtColor(tint, cv2.COLOR_RGB2BGR)))
+    return str(mask_path), str(overlay_path)
+
+
+def _encode(ext: str, array: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(ext, array)
+    if not ok:
+        raise InputError(f"cannot encode a {array.shape} array as {ext}")
+    return buf.tobytes()
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write under a temporary name in the same folder, then rename over ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+    os.replace(tmp, path)
+
+
+# --- on the client ------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def dask_client(
+    scheduler: str | None = None, workers: int = 2, threads_per_worker: int = 1
+) -> Iterator[Any]:
+    """A ``distributed.Client``: to ``scheduler`` (or ``$STREETCD_SCHEDULER``) when given,
+    else to a new LocalCluster of ``workers`` processes that is closed afterwards."""
+    from distributed import Client, LocalCluster
+
+    address = scheduler or os.environ.get(SCHEDULER_ENV) or None
+    if address:
+        with Client(address, set_as_default=False) as client:
+            yield client
+        return
+    if workers < 1:
+        raise InputError(f"workers = {workers} must be >= 1")
+    # dashboard on a free port: ``None`` would still bind 8787 and warn when it is taken.
+    with (
+        LocalCluster(
+            n_workers=workers,
+            threads_per_worker=threads_per_worker,
+            processes=True,
+            dashboard_address=":0",
+        ) as cluster,
+        Client(cluster, set_as_default=False) as client,
+    ):
+        yield client
+
+
+def segment_workers(client: Any, segment_ids: Sequence[str]) -> dict[str, str | None]:
+    """Assign segments round-robin to the workers alive now (a loose hint, see below)."""
+    workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
+    if not workers:
+        return {s: None for s in segment_ids}
+    return {s: workers[i % len(workers)] for i, s in enumerate(segment_ids)}
+
+
+def detect_segment(
+    client: Any, plan: Plan, segment_id: str, worker: str | None = None
+) -> RunSummary:
+    """Submit one segment's batches and publish each in one transaction as it completes.
+
+    ``worker`` is a loose restriction: the segment's batches prefer that worker (its tile
+    cache and image cache hold the segment's data) but Dask may move them, and will when
+    the worker dies.
+    """
+    from distributed import as_completed
+
+    batches = plan.batches_of(segment_id)
+    futures = {
+        client.submit(
+            detect_batch,
+            b,
+            key=f"{b.key}-{plan.run_id}",
+            pure=False,
+            workers=[worker] if worker else None,
+            allow_other_workers=True,
+        ): b
+        for b in batches
+    }
+    summary = RunSummary(plan.run_id)
+    with ChangeIndex(plan.index) as idx:
+        for future in as_completed(futures, loop=client.loop):
+            try:
+                records = future.result()
+            except Exception as exc:  # e.g. KilledWorker: a view that keeps crashing workers
+                lost = futures[future]
+                log.error(
+                    "batch %s lost (%s: %s); its %d views stay unpublished and are "
+                    "retried by the next run",
+                    lost.key,
+                    type(exc).__name__,
+                    exc,
+                    len(lost.tasks),
+                )
+                summary.n_lost += len(lost.tasks)
+                continue
+            idx.publish(plan.run_id, records)
+            summary.add(records)
+            _notify("batch", records)
+            future.release()
+    return summary
+
+
+def new_summary(plan: Plan) -> RunSummary:
+    """The summary of ``plan`` before any detection: its counts and plan-time failures."""
+    return RunSummary(
+        plan.run_id,
+        n_views=plan.n_views,
+        n_skipped=plan.n_skipped,
+        n_failed=len(plan.failed_at_plan),
+        failures=list(plan.failed_at_plan),
+    )
+
+
+def finish_run(plan: Plan, summary: RunSummary) -> None:
+    """Close the run's row in the index with the counts of ``summary`` (from new_summary):
+    status ``finished``, or ``incomplete`` when batches were lost."""
+    with ChangeIndex(plan.index) as idx:
+        idx.finish_run(
+            plan.run_id,
+            "incomplete" if summary.n_lost else "finished",
+            n_planned=plan.n_views,
+            n_skipped=plan.n_skipped,
+            n_done=summary.n_done,
+            n_failed=summary.n_failed,
+            n_flagged=summary.n_flagged,
+        )
+
+
+def run_pipeline(
+    client: Any,
+    images: str | Path,
+    poses: str | Path,
+    store: str | Path,
+    index: str | Path,
+    out: str | Path,
+    params: PipelineParams = PipelineParams(),
+    *,
+    retry_failed: bool = False,
+) -> RunSummary:
+    """One whole run without Prefect: plan, detect every segment on ``client``, publish."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    t0 = time.perf_counter()
+    plan = plan_run(images, poses, store, index, out, params, retry_failed=retry_failed)
+    summary = new_summary(plan)
+    segs = plan.segments_todo
+    hint = segment_workers(client, segs)
+    with ThreadPoolExecutor(max_workers=max(1, min(8, len(segs)))) as pool:
+        for part in pool.map(lambda s: detect_segment(client, plan, s, hint[s]), segs):
+            summary.merge(part)
+    finish_run(plan, summary)
+    summary.wall_s = time.perf_counter() - t0
+    return summary

@@ -1,0 +1,223 @@
+"""The workflow without Prefect, on real components: a small synthetic city, a LocalCluster of
+two worker processes, a scheduler and workers started as `dask` processes on loopback."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from streetcd import pipeline
+from streetcd.index import ChangeIndex, canonical_dump
+from streetcd.io.poses import read_poses
+
+PARAMS = pipeline.PipelineParams(batch_size=2)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with pipeline.dask_client(workers=2) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def clean_run(small_city, cluster, tmp_path_factory):
+    """One uninterrupted run: (summary, index path, out folder)."""
+    out = tmp_path_factory.mktemp("clean")
+    index = out / "change_index.sqlite"
+    summary = pipeline.run_pipeline(
+        cluster, small_city.images, small_city.poses, small_city.store, index, out, PARAMS
+    )
+    return summary, index, out
+
+
+def test_every_view_is_processed_and_only_flagged_ones_listed(small_city, clean_run):
+    summary, index, out = clean_run
+    n = len(read_poses(small_city.poses).views)
+    assert summary.n_views == n and summary.n_done + summary.n_failed == n
+    assert summary.n_failed == 0, summary.failures
+    assert summary.n_flagged > 0  # the city has changes
+    with ChangeIndex(index, create=False) as idx:
+        counts = idx.counts()
+        rows = idx.query()
+        segments = idx.segments()
+    assert counts["views"] == n and counts["flagged"] == summary.n_flagged == len(rows)
+    assert len(segments) >= 2  # two streets never share a segment
+    assert {r.segment_id for r in rows} <= {s.segment_id for s in segments}
+    for r in rows:
+        mask = cv2.imread(r.mask_path, cv2.IMREAD_UNCHANGED)
+        assert mask.shape == (270, 480) and set(np.unique(mask)) <= {0, 255}
+        assert (mask > 0).mean() == pytest.approx(r.changed_fraction, abs=1e-9)
+        assert Path(r.mask_path).is_relative_to(out)
+    assert not list(out.rglob("*.tmp"))
+
+
+def test_a_rerun_detects_nothing_and_changes_nothing(small_city, cluster, clean_run):
+    _, index, out = clean_run
+    before = canonical_dump(index)
+    again = pipeline.run_pipeline(
+        cluster, small_city.images, small_city.poses, small_city.store, index, out, PARAMS
+    )
+    assert again.n_done == 0 and again.n_skipped == again.n_views
+    assert canonical_dump(index) == before
+    other = pipeline.PipelineParams(batch_size=2, min_changed_fraction=0.5)
+    plan = pipeline.plan_run(
+        small_city.images, small_city.poses, small_city.store, index, out, other
+    )
+    assert plan.n_todo == plan.n_views  # other parameters: everything is due again
+
+
+def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_path):
+    images = tmp_path / "images"
+    shutil.copytree(small_city.images, images)
+    names = sorted(p.name for p in images.iterdir())
+    corrupt, lifted, unposed = names[1], names[2], names[3]
+    (images / corrupt).write_bytes((images / corrupt).read_bytes()[:200])  # truncated JPEG
+    lines = []
+    for line in small_city.poses.read_text().splitlines():
+        fields = line.split(",")
+        if fields[0] == lifted:  # a bad pose: 1 km up in the air, it sees no reference point
+            fields[3] = str(float(fields[3]) + 1000.0)
+        if fields[0] != unposed:
+            lines.append(",".join(fields))
+    poses = tmp_path / "poses.csv"
+    poses.write_text("\n".join(lines) + "\n")
+    index = tmp_path / "change_index.sqlite"
+    summary = pipeline.run_pipeline(
+        cluster, images, poses, small_city.store, index, tmp_path, PARAMS
+    )
+    errors = dict(summary.failures)
+    assert set(errors) == {corrupt, lifted, unposed}
+    assert corrupt in errors[corrupt] and "CorruptFileError" in errors[corrupt]
+    assert lifted in errors[lifted] and "EmptyViewError" in errors[lifted]
+    assert f"no pose for image {unposed}" in errors[unposed]
+    assert summary.n_done == len(names) - 3
+    with ChangeIndex(index, create=False) as idx:
+        assert dict(idx.failures()) == errors
+
+
+def _start(cmd: list[str], log: Path) -> subprocess.Popen:
+    with open(log, "wb") as fh:  # the child keeps its own copy of the descriptor
+        return subprocess.Popen(
+            cmd, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True
+        )  # own process group: kill it whole
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+
+
+def _wait_for(check, what: str, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"waited {timeout_s} s for {what}")
+        time.sleep(0.2)
+
+
+def test_losing_a_worker_mid_run_gives_the_same_index(small_city, clean_run, tmp_path):
+    from distributed import Client
+
+    dask = str(Path(sys.executable).with_name("dask"))  # the `dask` command of this venv
+    sched_file = tmp_path / "scheduler.json"
+    procs = [
+        _start(
+            [
+                dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched_file),
+            ],
+            tmp_path / "scheduler.log",
+        )
+    ]
+    try:
+        _wait_for(sched_file.exists, "the scheduler file", 60)
+        for k in range(2):
+            procs.append(
+                _start(
+                    [
+                        dask,
+                        "worker",
+                        "--scheduler-file",
+                        str(sched_file),
+                        "--nthreads",
+                        "1",
+                        "--host",
+                        "127.0.0.1",
+                        "--no-dashboard",
+                        "--name",
+                        f"w{k}",
+                    ],
+                    tmp_path / f"worker{k}.log",
+                )
+            )
+        with Client(scheduler_file=str(sched_file), set_as_default=False) as client:
+            client.wait_for_workers(2, timeout=90)
+            victim = procs[2]
+            killed = []
+
+            def kill_after_first_batch(event, payload):
+                if event == "batch" and not killed:
+                    _kill(victim)
+                    killed.append(time.monotonic())
+
+            index = tmp_path / "change_index.sqlite"
+            with pipeline.progress_listener(kill_after_first_batch):
+                summary = pipeline.run_pipeline(
+                    client,
+                    small_city.images,
+                    small_city.poses,
+                    small_city.store,
+                    index,
+                    tmp_path,
+                    PARAMS,
+                )
+            assert killed, "the run ended before a batch was published"
+            assert len(client.scheduler_info(n_workers=-1)["workers"]) == 1
+    finally:
+        for p in reversed(procs):
+            _kill(p)
+    assert summary.n_failed == 0, summary.failures
+    assert canonical_dump(index) == canonical_dump(clean_run[1])
+
+
+def test_new_mls_data_redoes_only_the_views_it_can_reach(small_city, clean_run, tmp_path):
+    from streetcd.io.las import write_las
+    from streetcd.tiles import TileStore, ingest
+
+    store = tmp_path / "store.zarr"
+    shutil.copytree(small_city.store, store)
+    index = tmp_path / "change_index.sqlite"
+    shutil.copy(clean_run[1], index)  # closed cleanly, so the WAL is checkpointed into it
+    views = read_poses(small_city.poses).views
+    near = sorted(v.name for v in views if v.name.startswith("S1_"))
+    center = np.mean([v.center for v in views if v.name in near], axis=0)
+    rng = np.random.default_rng(2)
+    new = tmp_path / "archive"
+    new.mkdir()
+    write_las(
+        new / "extra.laz",
+        center + rng.uniform(-1, 1, (500, 3)) + [0.0, 6.0, 0.0],
+        np.full(500, 67, np.uint8),
+        crs=TileStore.open(small_city.store).crs,
+    )
+    assert ingest(new, store).ok
+    plan = pipeline.plan_run(small_city.images, small_city.poses, store, index, tmp_path, PARAMS)
+    todo = sorted(t.view.name for b in plan.batches for t in b.tasks)
+    assert todo == near and plan.n_skipped == len(views) - len(near)

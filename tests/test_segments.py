@@ -1,0 +1,160 @@
+"""Street segments: trajectory order, cuts by length and gaps, stable ids, neighbours."""
+
+import numpy as np
+import pytest
+
+from streetcd.camera import Intrinsics, look_at
+from streetcd.errors import InputError
+from streetcd.segments import (
+    Segment,
+    SegmentParams,
+    cut_points,
+    order_views,
+    path_order,
+    plan_segments,
+)
+from streetcd.views import View
+
+E0, N0 = 372_000.0, 143_000.0  # UTM-sized coordinates, as real poses have
+INTR = Intrinsics(640, 360, 400.0, 400.0, 319.5, 179.5)
+
+
+def street(n, step_m=4.0, start=(E0, N0), along=(1.0, 0.0), prefix="a", t0=0.0, times=True):
+    """``n`` cameras driving along ``along``, 1.8 m high, looking sideways at a façade 12 m away."""
+    along = np.asarray(along, dtype=float)
+    side = np.array([-along[1], along[0]])
+    views = []
+    for i in range(n):
+        xy = np.asarray(start) + i * step_m * along
+        c = np.array([xy[0], xy[1], 101.8])
+        target = np.array([*(xy + 12.0 * side + 3.0 * along), 103.0])
+        views.append(
+            View(f"{prefix}_{i:03d}.jpg", INTR, look_at(c, target), None, t0 + i if times else None)
+        )
+    return views
+
+
+def test_order_by_time_ignores_input_order():
+    views = street(12)
+    shuffled = [views[i] for i in np.random.default_rng(3).permutation(12)]
+    assert [v.name for v in order_views(shuffled)] == [v.name for v in views]
+
+
+def test_order_by_path_without_times_follows_the_street():
+    views = street(15, times=False)
+    shuffled = [views[i] for i in np.random.default_rng(4).permutation(15)]
+    names = [v.name for v in order_views(shuffled)]
+    expected = [v.name for v in views]
+    assert names in (expected, expected[::-1])
+
+
+def test_path_order_is_a_permutation_and_walks_an_l_shape():
+    leg1 = [(x, 0.0, 0.0) for x in range(0, 40, 4)]
+    leg2 = [(36.0, y, 0.0) for y in range(4, 40, 4)]
+    pts = np.array(leg1 + leg2, dtype=float)
+    order = path_order(pts[np.random.default_rng(5).permutation(len(pts))])
+    assert sorted(order.tolist()) == list(range(len(pts)))
+    walked = pts[np.random.default_rng(5).permutation(len(pts))][order]
+    steps = np.linalg.norm(np.diff(walked, axis=0), axis=1)
+    np.testing.assert_allclose(steps, 4.0)  # never jumps: a true walk along the L
+
+
+def test_cut_points_respects_length_and_is_maximal():
+    centers = np.column_stack([np.arange(0, 101, 3.0), np.zeros(34), np.zeros(34)])
+    pieces = cut_points(centers, length_m=20.0, max_gap_m=10.0)
+    covered = np.concatenate([np.arange(len(centers))[p] for p in pieces])
+    np.testing.assert_array_equal(covered, np.arange(len(centers)))
+    for a, b in zip(pieces, pieces[1:], strict=False):
+        c = centers[a]
+        assert np.linalg.norm(np.diff(c[:, :2], axis=0), axis=1).sum() <= 20.0
+        # one more view would have made the piece too long
+        assert (
+            np.linalg.norm(np.diff(centers[a.start : b.start + 1, :2], axis=0), axis=1).sum() > 20.0
+        )
+
+
+def test_a_gap_starts_a_new_segment():
+    views = street(6, prefix="a") + street(6, start=(E0 + 500, N0), prefix="b", t0=100)
+    segments = plan_segments(views, SegmentParams(length_m=1000.0, max_gap_m=30.0))
+    assert [s.views for s in segments] == [
+        tuple(v.name for v in views[:6]),
+        tuple(v.name for v in views[6:]),
+    ]
+
+
+def test_segments_cover_every_view_once_with_bounded_length():
+    views = street(40, step_m=4.9)  # 191 m of street; 10 steps = 49 m, 11 would be 53.9 m
+    segments = plan_segments(views, SegmentParams(length_m=50.0))
+    names = [n for s in segments for n in s.views]
+    assert names == [v.name for v in views]
+    assert all(s.length_m <= 50.0 + 1e-9 for s in segments)
+    assert [len(s.views) for s in segments] == [11, 11, 11, 7]
+
+
+def test_polyline_and_bbox_are_in_the_crs():
+    views = street(10)
+    params = SegmentParams(bbox_margin_m=15.0)
+    (seg,) = plan_segments(views, params)
+    np.testing.assert_allclose(seg.polyline, [v.center[:2] for v in views], atol=1e-6)
+    lo = np.min(seg.polyline, axis=0) - 15.0
+    hi = np.max(seg.polyline, axis=0) + 15.0
+    np.testing.assert_allclose(seg.bbox, [lo[0], lo[1], hi[0], hi[1]])
+    assert seg.length_m == pytest.approx(36.0)
+
+
+def test_ids_are_stable_and_follow_content():
+    views = street(20)
+    ids = [s.id for s in plan_segments(views, SegmentParams(length_m=30.0))]
+    again = [s.id for s in plan_segments(views[::-1], SegmentParams(length_m=30.0))]
+    assert ids == again
+    assert len(set(ids)) == len(ids)
+    assert ids[0].startswith("a_000-")
+    moved = list(views)
+    v = moved[0]
+    moved[0] = View(
+        v.name, v.intrinsics, look_at(v.center + [0.01, 0, 0], v.center + [0, 12, 0]), None, v.time
+    )
+    assert plan_segments(moved, SegmentParams(length_m=30.0))[0].id != ids[0]
+
+
+def test_neighbours_are_the_overlapping_views_and_cross_segment_ends():
+    views = street(12, step_m=4.0)
+    segments = plan_segments(views, SegmentParams(length_m=20.0, n_neighbours=2))
+    by_name = {v.name: v for v in views}
+    for seg in segments:
+        assert len(seg.neighbours) == len(seg.views)
+        for name, nbrs in zip(seg.views, seg.neighbours, strict=True):
+            assert name not in nbrs and len(nbrs) == 2
+            i = int(name[2:5])
+            # sideways cameras 4 m apart: the overlapping views are the two nearest
+            assert {int(n[2:5]) for n in nbrs} <= {i - 2, i - 1, i + 1, i + 2}
+            assert all(
+                np.linalg.norm(by_name[n].center - by_name[name].center) <= 8.0 + 1e-9 for n in nbrs
+            )
+    last_of_first = segments[0].neighbours[-1]
+    assert any(n not in segments[0].views for n in last_of_first)
+
+
+def test_duplicate_names_and_bad_parameters_are_refused():
+    views = street(3)
+    with pytest.raises(InputError, match="a_000.jpg"):
+        plan_segments(views + [views[0]])
+    with pytest.raises(InputError, match="length_m"):
+        SegmentParams(length_m=0.0)
+    with pytest.raises(InputError, match="n_neighbours"):
+        SegmentParams(n_neighbours=0)
+
+
+def test_no_views_no_segments():
+    assert plan_segments([]) == []
+    assert isinstance(plan_segments(street(1))[0], Segment)
+
+
+def test_dense_acquisitions_rank_only_the_nearest_candidates():
+    views = street(40, step_m=0.5)  # a camera every half metre: 40 within the radius
+    (seg,) = plan_segments(views, SegmentParams(n_neighbours=3, max_candidates=4))
+    for name, nbrs in zip(seg.views, seg.neighbours, strict=True):
+        i = int(name[2:5])
+        assert len(nbrs) == 3 and all(abs(int(n[2:5]) - i) <= 4 for n in nbrs)
+    with pytest.raises(InputError, match="max_candidates"):
+        SegmentParams(n_neighbours=3, max_candidates=2)

@@ -1,0 +1,340 @@
+"""Tile store ingest and reading (streetcd.tiles, streetcd ingest / tiles commands)."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from streetcd.cli.ingest import ingest as ingest_cmd
+from streetcd.cli.ingest import tiles as tiles_cmd
+from streetcd.errors import InputError, OptionalDependencyError
+from streetcd.io.las import PointCloud, read_las, write_las
+from streetcd.tiles import TileCache, TileStore, find_archive_files, get_reader, ingest
+
+ORIGIN = np.array([634_000.0, 5_712_000.0, 40.0])  # CRS metres, 10⁵–10⁶ m
+TILE = 15.0
+
+
+def make_archive(root: Path, rng: np.random.Generator, n_files: int = 4, n: int = 3000,
+                 crs: str = "EPSG:32632") -> dict[str, np.ndarray]:
+    """Files whose footprints overlap (so tiles get fragments from several files); returns
+    all points as CRS integers in mm (N, 3) int64 with their gps_time ids."""
+    xyz_all, ids = [], []
+    for k in range(n_files):
+        xyz = rng.uniform([k * 6.0, 0.0, 0.0], [k * 6.0 + 25.0, 27.0, 12.0], (n, 3))
+        gps = np.arange(k * n, (k + 1) * n, dtype=np.float64)
+        write_las(root / f"strip_{k}.laz", xyz, rng.integers(1, 12, n), origin=ORIGIN,
+                  intensity=rng.integers(0, 4000, n), rgb=rng.integers(0, 65535, (n, 3)),
+                  gps_time=gps, crs=crs)
+        xyz_all.append(read_las(root / f"strip_{k}.laz", origin=np.zeros(3)).xyz)
+        ids.append(gps)
+    return {"mm": np.rint(np.concatenate(xyz_all) * 1000).astype(np.int64),
+            "ids": np.concatenate(ids)}
+
+
+def all_points(store: TileStore) -> tuple[dict[str, PointCloud], np.ndarray, np.ndarray]:
+    """Every tile's cloud, plus all points as CRS mm integers and their gps_time ids."""
+    clouds = {tid: store.read_tile(tid, cache=False) for tid in store.tiles}
+    xyz = np.concatenate([c.xyz for c in clouds.values()]) + store.origin
+    ids = np.concatenate([c.gps_time for c in clouds.values()])
+    return clouds, np.rint(xyz * 1000).astype(np.int64), ids
+
+
+def assert_same_store(a: Path, b: Path) -> None:
+    """Same tiles with the same points in the same order, and the same index contents."""
+    sa, sb = TileStore.open(a), TileStore.open(b)
+    assert sorted(sa.tiles) == sorted(sb.tiles)
+    for tid in sa.tiles:
+        ca, cb = sa.read_tile(tid, cache=False), sb.read_tile(tid, cache=False)
+        for name in ("xyz", "classification", "intensity", "rgb", "gps_time"):
+            np.testing.assert_array_equal(getattr(ca, name), getattr(cb, name))
+        assert sa.tiles[tid] == sb.tiles[tid]
+    assert sa.files == sb.files
+    # No uncommitted fragment directories left on disk.
+    for s in (a, b):
+        on_disk = {(t.name, f.name) for t in (s / "tiles").iterdir() if t.is_dir()
+                   for f in t.iterdir()
+                   if f.is_dir()}
+        listed = {(t.id, f.key) for t in TileStore.open(s).tiles.values() for f in t.fragments}
+        assert on_disk == listed
+        assert not (s / "_staging").exists()
+
+
+def snapshot(root: Path) -> dict[str, tuple[bytes, int]]:
+    return {str(p.relative_to(root)): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def archive(tmp_path):
+    rng = np.random.default_rng(7)
+    d = tmp_path / "archive"
+    truth = make_archive(d, rng)
+    return d, truth
+
+
+def test_every_point_lands_in_exactly_one_tile_whatever_the_file_order(archive, tmp_path):
+    d, truth = archive
+    at_once = ingest(d, tmp_path / "a.zarr", tile_size_m=TILE, chunk_points=1000,
+                     buffer_points=1500)
+    assert at_once.ok and at_once.points == len(truth["ids"])
+    for f in sorted(d.glob("*.laz"), reverse=True):  # one file per run, reverse order
+        ingest(f, tmp_path / "b.zarr", tile_size_m=TILE, chunk_points=1000)
+    for name in ("a.zarr", "b.zarr"):
+        store = TileStore.open(tmp_path / name)
+        clouds, mm, ids = all_points(store)
+        assert len(ids) == len(truth["ids"]) == store.point_count
+        np.testing.assert_array_equal(np.sort(ids), np.sort(truth["ids"]))  # none lost/duped
+        order, t_order = np.argsort(ids), np.argsort(truth["ids"])
+        np.testing.assert_array_equal(mm[order], truth["mm"][t_order])  # exact to the mm
+        for tid, cloud in clouds.items():  # each point inside its own tile's square
+            box = store.tiles[tid].box
+            xy = cloud.xyz[:, :2] + store.origin[:2]
+            assert np.all(xy >= np.array(box[:2]) - 1e-9) and np.all(xy < np.array(box[2:]))
+            assert len(cloud) == store.tiles[tid].count
+    a, b = TileStore.open(tmp_path / "a.zarr"), TileStore.open(tmp_path / "b.zarr")
+    assert a.tiles.keys() == b.tiles.keys()
+    for tid in a.tiles:
+        assert sorted(a.read_tile(tid).gps_time) == sorted(b.read_tile(tid).gps_time)
+
+
+def test_tile_index_holds_bounds_counts_classes_and_sources(archive, tmp_path):
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    store = TileStore.open(tmp_path / "s.zarr")
+    for tile in store.tiles.values():
+        cloud = store.read_tile(tile.id)
+        xyz = cloud.xyz + store.origin
+        np.testing.assert_allclose(tile.bounds, [*xyz.min(axis=0), *xyz.max(axis=0)], atol=1e-6)
+        codes, counts = np.unique(cloud.classification, return_counts=True)
+        assert tile.classes == dict(zip(codes.tolist(), counts.tolist(), strict=True))
+        assert len(set(tile.sources)) == len(tile.sources) >= 1
+    assert store.crs == "EPSG:32632"
+    np.testing.assert_array_equal(store.origin, [634_000.0, 5_712_000.0, 0.0])
+
+
+def test_bbox_lookup_equals_brute_force(archive, tmp_path):
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    store = TileStore.open(tmp_path / "s.zarr")
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        lo = ORIGIN[:2] + rng.uniform(-20, 60, 2)
+        hi = lo + rng.uniform(0, 40, 2)
+        got = {t.id for t in store.tiles_in_bbox(lo[0], lo[1], hi[0], hi[1])}
+        want = {t.id for t in store.tiles.values() if t.box[0] <= hi[0] and t.box[2] > lo[0]
+                and t.box[1] <= hi[1] and t.box[3] > lo[1]}
+        assert got == want
+
+
+def test_parallel_ingest_equals_serial_ingest(archive, tmp_path):
+    d, _ = archive
+    seen = []
+    r = ingest(d, tmp_path / "par.zarr", tile_size_m=TILE, workers=2, chunk_points=1000,
+               progress=lambda done, total, name: seen.append((done, total)))
+    ingest(d, tmp_path / "ser.zarr", tile_size_m=TILE, workers=1)
+    assert r.ok and len(r.ingested) == 4
+    assert seen[-1][0] == seen[-1][1] == 12000  # chunk progress came back from the workers
+    assert_same_store(tmp_path / "par.zarr", tmp_path / "ser.zarr")
+
+
+def test_reingest_changes_nothing(archive, tmp_path):
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    before = snapshot(tmp_path / "s.zarr")
+    again = ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    assert again.ingested == () and len(again.skipped) == 4 and again.points == 0
+    assert snapshot(tmp_path / "s.zarr") == before
+
+
+class Crash(Exception):
+    pass
+
+
+def test_crash_mid_file_then_resume_equals_clean_ingest(archive, tmp_path):
+    d, truth = archive
+    calls = []
+
+    def crash_in_third_file(done, total, name):
+        calls.append(name)
+        if calls.count("strip_2.laz") == 2:  # second chunk of the third file
+            raise Crash(name)
+
+    with pytest.raises(Crash):
+        ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000,
+               buffer_points=1500, progress=crash_in_third_file)
+    # Only the two committed files are visible, though strip_2 had fragments on disk.
+    half = TileStore.open(tmp_path / "s.zarr")
+    assert half.point_count == 6000
+    assert sorted(Path(p).name for p in half.files) == ["strip_0.laz", "strip_1.laz"]
+    resumed = ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000)
+    assert [Path(p).name for p in resumed.ingested] == ["strip_2.laz", "strip_3.laz"]
+    ingest(d, tmp_path / "clean.zarr", tile_size_m=TILE)
+    assert_same_store(tmp_path / "s.zarr", tmp_path / "clean.zarr")
+
+
+def test_killed_process_mid_file_then_resume_equals_clean_ingest(archive, tmp_path):
+    """A real SIGKILL (no cleanup, no finally) in the middle of the second file."""
+    d, _ = archive
+    script = textwrap.dedent(f"""
+        import os, signal
+        from streetcd.tiles import ingest
+        n = 0
+        def kill(done, total, name):
+            global n
+            n += 1
+            if name == "strip_1.laz" and n > 4:
+                os.kill(os.getpid(), signal.SIGKILL)
+        ingest({str(d)!r}, {str(tmp_path / "s.zarr")!r}, tile_size_m={TILE}, chunk_points=1000,
+               buffer_points=1500, progress=kill)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120)
+    assert proc.returncode == -9, proc.stderr.decode()
+    assert any((tmp_path / "s.zarr" / "_staging").iterdir())  # it really died mid-file
+    assert TileStore.open(tmp_path / "s.zarr").point_count == 3000
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    ingest(d, tmp_path / "clean.zarr", tile_size_m=TILE)
+    assert_same_store(tmp_path / "s.zarr", tmp_path / "clean.zarr")
+
+
+def test_changed_file_replaces_its_points(archive, tmp_path):
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    rng = np.random.default_rng(11)
+    xyz = rng.uniform([30, 30, 0], [45, 40, 5], (500, 3))  # moved to other tiles
+    write_las(d / "strip_1.laz", xyz, np.full(500, 6), origin=ORIGIN,
+              gps_time=np.arange(500.0), crs="EPSG:32632")
+    os.utime(d / "strip_1.laz", ns=(1, 1_700_000_000_000_000_000))
+    r = ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    assert [Path(p).name for p in r.ingested] == ["strip_1.laz"]
+    ingest(d, tmp_path / "clean.zarr", tile_size_m=TILE)
+    assert_same_store(tmp_path / "s.zarr", tmp_path / "clean.zarr")
+    assert TileStore.open(tmp_path / "s.zarr").point_count == 9500
+
+
+def _nan_offset(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    data[163:171] = struct.pack("<d", float("nan"))  # LAS header: Y offset
+    path.write_bytes(bytes(data))
+
+
+def test_bad_files_fail_by_name_and_good_files_still_complete(archive, tmp_path):
+    d, truth = archive
+    rng = np.random.default_rng(5)
+    cut = write_las(d / "cut.laz", rng.uniform(0, 20, (20000, 3)), np.full(20000, 2),
+                    origin=ORIGIN, crs="EPSG:32632")
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    write_las(d / "empty.laz", np.zeros((0, 3)), np.zeros(0), crs="EPSG:32632")
+    (d / "zero.laz").write_bytes(b"")
+    _nan_offset(write_las(d / "nan.las", rng.uniform(0, 20, (50, 3)), np.full(50, 2),
+                          origin=ORIGIN, crs="EPSG:32632"))
+    write_las(d / "other_crs.laz", rng.uniform(0, 20, (50, 3)), np.full(50, 2), origin=ORIGIN,
+              crs="EPSG:25832")
+    r = ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=4000)
+    expected = {"cut.laz": "CorruptFileError", "empty.laz": "InputError",
+                "zero.laz": "CorruptFileError", "nan.las": "InputError",
+                "other_crs.laz": "CRSMismatchError"}
+    assert {Path(p).name for p in r.failed} == set(expected)
+    for path, message in r.failed.items():
+        assert Path(path).name in message
+    assert "EPSG:25832" in r.failed[str(d / "other_crs.laz")]
+    store = TileStore.open(tmp_path / "s.zarr")
+    assert store.point_count == len(truth["ids"])  # the good files all went in
+    for path, rec in store.files.items():
+        name = Path(path).name
+        assert rec["status"] == ("failed" if name in expected else "done")
+        if name in expected:
+            assert rec["error_type"] == expected[name] and name in rec["error"]
+    assert not (tmp_path / "s.zarr" / "_staging").exists()  # cut.laz's partial output gone
+
+
+def test_existing_directory_that_is_not_a_store_is_refused(archive, tmp_path):
+    d, _ = archive
+    (tmp_path / "precious").mkdir()
+    (tmp_path / "precious" / "notes.txt").write_text("keep me")
+    with pytest.raises(InputError, match="not a streetcd tile store"):
+        ingest(d, tmp_path / "precious")
+    assert (tmp_path / "precious" / "notes.txt").read_text() == "keep me"
+
+
+def test_store_settings_cannot_change(archive, tmp_path):
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    with pytest.raises(InputError, match="tile_size_m=15.0"):
+        ingest(d, tmp_path / "s.zarr", tile_size_m=50.0)
+
+
+def test_archive_as_glob_and_directory(archive):
+    d, _ = archive
+    assert find_archive_files(d) == find_archive_files(str(d / "strip_*.laz"))
+    assert len(find_archive_files(d)) == 4
+
+
+def test_tile_cache_is_bounded_by_bytes():
+    def cloud(n):
+        return PointCloud(np.zeros((n, 3)), np.zeros(3), np.zeros(n, np.uint8))
+
+    cache = TileCache(max_bytes=3 * 25 * 100)  # three clouds of 100 points (25 B each)
+    for k in range(4):
+        cache.put(("s", k), cloud(100))
+    assert cache.get(("s", 0)) is None and cache.get(("s", 3)) is not None
+    assert cache.bytes <= cache.max_bytes
+    cache.get(("s", 1))  # touch 1: 2 is now the least recently used
+    cache.put(("s", 4), cloud(100))
+    assert cache.get(("s", 2)) is None and cache.get(("s", 1)) is not None
+
+
+def test_pdal_missing_gives_one_clear_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pdal", None)  # what an environment without pdal sees
+    with pytest.raises(OptionalDependencyError) as err:
+        get_reader("pdal")
+    message = str(err.value)
+    assert "\n" not in message and "pip install streetcd[pdal]" in message
+    assert "PDAL C++ library" in message
+
+
+def test_pdal_reader_equals_laspy_reader(archive, tmp_path):
+    pytest.importorskip("pdal", reason="PDAL (C++ library + python bindings) not installed")
+    d, _ = archive
+    ingest(d, tmp_path / "pdal.zarr", tile_size_m=TILE, reader=get_reader("pdal"))
+    ingest(d, tmp_path / "laspy.zarr", tile_size_m=TILE)
+    a, b = TileStore.open(tmp_path / "pdal.zarr"), TileStore.open(tmp_path / "laspy.zarr")
+    assert a.tiles.keys() == b.tiles.keys()
+    for tid in a.tiles:
+        np.testing.assert_array_equal(a.read_tile(tid).xyz, b.read_tile(tid).xyz)
+
+
+def test_cli_ingest_and_tiles_json(archive, tmp_path):
+    d, truth = archive
+    (d / "zero.laz").write_bytes(b"")
+    runner = CliRunner()
+    store = tmp_path / "s.zarr"
+    r = runner.invoke(ingest_cmd, ["--archive", str(d), "--store", str(store),
+                                   "--tile-size", "15", "--workers", "1"])
+    assert r.exit_code == 1, r.output  # a file failed: reported, the rest ingested
+    assert "zero.laz" in r.output and "4 files ingested" in r.output
+    r = runner.invoke(tiles_cmd, [str(store), "--json"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(r.output)
+    assert sum(t["count"] for t in doc["tiles"]) == len(truth["ids"])
+    for t in doc["tiles"]:
+        assert {"id", "bounds", "count", "classes", "sources"} <= set(t)
+        assert len(t["bounds"]) == 6 and t["sources"]
+    r = runner.invoke(tiles_cmd, [str(store)])
+    assert r.exit_code == 0 and "failed file" in r.output
+
+
+def test_cli_pipeline_needs_pdal_reader(archive, tmp_path):
+    d, _ = archive
+    r = CliRunner().invoke(ingest_cmd, ["--archive", str(d), "--store", str(tmp_path / "s"),
+                                        "--pipeline", str(tmp_path / "p.json")])
+    assert r.exit_code != 0 and "needs --reader pdal" in r.output
