@@ -38,8 +38,9 @@ CRS = "EPSG:32632"
 # --- synthetic archive -------------------------------------------------------------------
 
 
-def street_strip(rng: np.random.Generator, n: int, x0: float, length: float,
-                 t0: float) -> dict[str, np.ndarray]:
+def street_strip(
+    rng: np.random.Generator, n: int, x0: float, length: float, t0: float
+) -> dict[str, np.ndarray]:
     """n points of a 2D profile scanner (2.5 m high, 100 profiles/s) driving along +x from
     x0 over ``length`` metres: road |y| < 4, verges to ±12 m, façades at y = ±12 up to 15 m.
     Local metres (add ORIGIN for the CRS); scan order, like a real MLS file."""
@@ -62,9 +63,13 @@ def street_strip(rng: np.random.Generator, n: int, x0: float, length: float,
     cls = np.where(wall, 6, np.where(np.abs(y) < 4.0, 11, 2)).astype(np.uint8)
     shade = (0.5 + 0.25 * np.sin(x / 3.0) + 0.25 * np.cos(z)) * 60000
     rgb = np.clip(shade[:, None] + rng.normal(0, 800, (n, 3)), 0, 65535).astype(np.uint16)
-    return {"xyz": xyz, "classification": cls, "rgb": rgb,
-            "intensity": np.clip(4000 / (1 + t), 0, 65535).astype(np.uint16),
-            "gps_time": t0 + np.arange(n) / (100.0 * per_profile)}
+    return {
+        "xyz": xyz,
+        "classification": cls,
+        "rgb": rgb,
+        "intensity": np.clip(4000 / (1 + t), 0, 65535).astype(np.uint16),
+        "gps_time": t0 + np.arange(n) / (100.0 * per_profile),
+    }
 
 
 def make_archive(root: Path, points: int, files: int, seed: int = 0) -> list[Path]:
@@ -81,8 +86,16 @@ def make_archive(root: Path, points: int, files: int, seed: int = 0) -> list[Pat
 def _write(path: Path, s: dict[str, np.ndarray]) -> Path:
     from streetcd.io.las import write_las
 
-    return write_las(path, s["xyz"], s["classification"], origin=ORIGIN,
-                     intensity=s["intensity"], rgb=s["rgb"], gps_time=s["gps_time"], crs=CRS)
+    return write_las(
+        path,
+        s["xyz"],
+        s["classification"],
+        origin=ORIGIN,
+        intensity=s["intensity"],
+        rgb=s["rgb"],
+        gps_time=s["gps_time"],
+        crs=CRS,
+    )
 
 
 # --- timed children ----------------------------------------------------------------------
@@ -139,51 +152,91 @@ def child(args: argparse.Namespace) -> None:
     else:
         from streetcd.tiles import ingest
 
-        r = ingest(files, args.child_store, tile_size_m=args.tile_size, workers=args.workers,
-                   chunk_points=args.chunk_points)
+        r = ingest(
+            files,
+            args.child_store,
+            tile_size_m=args.tile_size,
+            workers=args.workers,
+            chunk_points=args.chunk_points,
+        )
         if r.failed:
             raise SystemExit(f"ingest failed: {r.failed}")
         points = r.points
     seconds = time.perf_counter() - t0
-    print(json.dumps({"seconds": seconds, "points": points, "rss_mb": _hwm_mb("self"),
-                      "workers_rss_mb": workers_peak.stop()}))
+    print(
+        json.dumps(
+            {
+                "seconds": seconds,
+                "points": points,
+                "rss_mb": _hwm_mb("self"),
+                "workers_rss_mb": workers_peak.stop(),
+            }
+        )
+    )
 
 
-def run_child(kind: str, files: list[Path], args: argparse.Namespace, store: Path | None = None,
-              workers: int = 1) -> dict[str, float]:
+def run_child(
+    kind: str,
+    files: list[Path],
+    args: argparse.Namespace,
+    store: Path | None = None,
+    workers: int = 1,
+) -> dict[str, float]:
     if store is not None:
         shutil.rmtree(store, ignore_errors=True)
-    cmd = [sys.executable, __file__, "--child", kind, "--child-files",
-           json.dumps([str(f) for f in files]), "--child-store", str(store or ""),
-           "--workers", str(workers), "--tile-size", str(args.tile_size),
-           "--chunk-points", str(args.chunk_points)]
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child",
+        kind,
+        "--child-files",
+        json.dumps([str(f) for f in files]),
+        "--child-store",
+        str(store or ""),
+        "--workers",
+        str(workers),
+        "--tile-size",
+        str(args.tile_size),
+        "--chunk-points",
+        str(args.chunk_points),
+    ]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def ingest_table(files: list[Path], args: argparse.Namespace, work: Path) -> list[str]:
     subset = files[: max(1, len(files) // 5)]
-    runs = [("plain laspy read", "read", files, 1), ("ingest, 1 worker", "ingest", files, 1),
-            ("ingest, 1 worker, 1/5 archive", "ingest", subset, 1),
-            (f"ingest, {args.workers} workers", "ingest", files, args.workers),
-            (f"ingest, {args.workers} workers, 1/5 archive", "ingest", subset, args.workers)]
+    runs = [
+        ("plain laspy read", "read", files, 1),
+        ("ingest, 1 worker", "ingest", files, 1),
+        ("ingest, 1 worker, 1/5 archive", "ingest", subset, 1),
+        (f"ingest, {args.workers} workers", "ingest", files, args.workers),
+        (f"ingest, {args.workers} workers, 1/5 archive", "ingest", subset, args.workers),
+    ]
     keep = [int(k) for k in args.rows.split(",")] if args.rows else range(len(runs))
     runs = [runs[k] for k in keep]
     run_child("read", files, args)  # warm-up: imports, page cache
     rows, plain = [], None
     for label, kind, fs, w in runs:
-        results = [run_child(kind, fs, args, work / "bench.zarr" if kind == "ingest" else None,
-                             w) for _ in range(args.repeats)]
+        results = [
+            run_child(kind, fs, args, work / "bench.zarr" if kind == "ingest" else None, w)
+            for _ in range(args.repeats)
+        ]
         sec = statistics.median(r["seconds"] for r in results)
         pts = results[0]["points"]
         rate = pts / sec
         plain = plain or (rate if kind == "read" else float("nan"))
         rss = max(r["rss_mb"] for r in results)
         wrss = max(r["workers_rss_mb"] for r in results)
-        rows.append(f"| {label} | {len(fs)} | {pts:,} | {sec:.1f} | {rate / 1e6:.2f} | "
-                    f"{rate / plain:.2f} | {rss:.0f} | {wrss:.0f} |")
-    head = ["| run | files | points | s (median) | Mpts/s | × plain read | peak RSS MB | "
-            "peak RSS workers MB |", "|---|---|---|---|---|---|---|---|"]
+        rows.append(
+            f"| {label} | {len(fs)} | {pts:,} | {sec:.1f} | {rate / 1e6:.2f} | "
+            f"{rate / plain:.2f} | {rss:.0f} | {wrss:.0f} |"
+        )
+    head = [
+        "| run | files | points | s (median) | Mpts/s | × plain read | peak RSS MB | "
+        "peak RSS workers MB |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     return head + rows
 
 
@@ -199,9 +252,11 @@ def coords_table(files: list[Path], work: Path) -> list[str]:
     from streetcd.tiles import _COMPRESSOR
 
     cloud = read_las(files[0], origin=ORIGIN)
-    xyz = cloud.xyz[: 2_000_000]
-    variants = {"int32, 1 mm, tile-local": np.rint(xyz / 0.001).astype(np.int32),
-                "float64, local": xyz}
+    xyz = cloud.xyz[:2_000_000]
+    variants = {
+        "int32, 1 mm, tile-local": np.rint(xyz / 0.001).astype(np.int32),
+        "float64, local": xyz,
+    }
     rows = ["| xyz storage | bytes/point | write ms/Mpt | read ms/Mpt |", "|---|---|---|---|"]
     for label, arr in variants.items():
         w, r = [], []
@@ -216,17 +271,20 @@ def coords_table(files: list[Path], work: Path) -> list[str]:
             r.append(time.perf_counter() - t0)
         size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
         mpts = len(arr) / 1e6
-        rows.append(f"| {label} | {size / len(arr):.2f} | "
-                    f"{statistics.median(w[1:]) * 1000 / mpts:.0f} | "
-                    f"{statistics.median(r[1:]) * 1000 / mpts:.0f} |")
+        rows.append(
+            f"| {label} | {size / len(arr):.2f} | "
+            f"{statistics.median(w[1:]) * 1000 / mpts:.0f} | "
+            f"{statistics.median(r[1:]) * 1000 / mpts:.0f} |"
+        )
     return rows
 
 
 # --- crop latency against store size -----------------------------------------------------
 
 
-def crop_store(root: Path, n_tiles: int, core_points: int, tile: float,
-               rng: np.random.Generator) -> Path:
+def crop_store(
+    root: Path, n_tiles: int, core_points: int, tile: float, rng: np.random.Generator
+) -> Path:
     """A store of ``n_tiles`` tiles (≥ 10) in a square-ish grid: the 5 × 2 core that holds
     every view's frustum dense, every other tile 100 points (written in ≤ 10 files)."""
     cols = max(5, math.ceil(math.sqrt(n_tiles)))
@@ -239,10 +297,13 @@ def crop_store(root: Path, n_tiles: int, core_points: int, tile: float,
     z = rng.uniform(0.0, 15.0, len(start))
     xyz = np.column_stack([xy, z])
     n = len(xyz)
-    s = {"xyz": xyz, "classification": rng.integers(1, 12, n).astype(np.uint8),
-         "rgb": rng.integers(0, 65535, (n, 3)).astype(np.uint16),
-         "intensity": rng.integers(0, 4000, n).astype(np.uint16),
-         "gps_time": np.arange(n, dtype=np.float64)}
+    s = {
+        "xyz": xyz,
+        "classification": rng.integers(1, 12, n).astype(np.uint8),
+        "rgb": rng.integers(0, 65535, (n, 3)).astype(np.uint16),
+        "intensity": rng.integers(0, 4000, n).astype(np.uint16),
+        "gps_time": np.arange(n, dtype=np.float64),
+    }
     arch = root / f"crop_archive_{n_tiles}"
     parts = np.array_split(np.arange(n), min(10, max(1, n_tiles // 10)))
     for k, idx in enumerate(parts):
@@ -271,9 +332,11 @@ def crop_table(args: argparse.Namespace, work: Path) -> list[str]:
         yaw = np.radians(rng.uniform(-5, 5))
         target = c + np.array([np.cos(yaw), np.sin(yaw), -0.05])
         views.append(View("v", intr, look_at(c + ORIGIN, target + ORIGIN)))
-    rows = ["| tiles in store | points in store | open index ms | bbox lookup µs | "
-            "crop warm ms (median) | warm p90 ms | crop cold ms (median) | points/view |",
-            "|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| tiles in store | points in store | open index ms | bbox lookup µs | "
+        "crop warm ms (median) | warm p90 ms | crop cold ms (median) | points/view |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for n_tiles in [int(x) for x in args.crop_tiles.split(",")]:
         t0 = time.perf_counter()
         path = crop_store(work, n_tiles, args.core_points, tile, rng)
@@ -299,10 +362,12 @@ def crop_table(args: argparse.Namespace, work: Path) -> list[str]:
             t0 = time.perf_counter()
             sizes.append(len(crop_for_view(store, v)))
             warm.append(time.perf_counter() - t0)
-        rows.append(f"| {len(store):,} | {store.point_count:,} | {open_ms:.1f} | "
-                    f"{lookup_us:.1f} | {statistics.median(warm) * 1000:.1f} | "
-                    f"{np.percentile(warm, 90) * 1000:.1f} | "
-                    f"{statistics.median(cold) * 1000:.1f} | {int(np.median(sizes)):,} |")
+        rows.append(
+            f"| {len(store):,} | {store.point_count:,} | {open_ms:.1f} | "
+            f"{lookup_us:.1f} | {statistics.median(warm) * 1000:.1f} | "
+            f"{np.percentile(warm, 90) * 1000:.1f} | "
+            f"{statistics.median(cold) * 1000:.1f} | {int(np.median(sizes)):,} |"
+        )
         print(f"  store of {len(store):,} tiles built in {build:.0f} s", file=sys.stderr)
         shutil.rmtree(path)
     return rows
@@ -320,10 +385,11 @@ def main() -> None:
     ap.add_argument("--core-points", type=int, default=100_000, help="points per core tile")
     ap.add_argument("--views", type=int, default=40)
     ap.add_argument("--out", help="work folder (kept); default a temporary one (removed)")
-    ap.add_argument("--skip", default="", help="comma list of sections to skip: "
-                    "ingest,coords,crop")
-    ap.add_argument("--rows", help="ingest-table rows to run, e.g. 0,3 (default all; "
-                    "'× plain read' needs row 0)")
+    ap.add_argument("--skip", default="", help="comma list of sections to skip: ingest,coords,crop")
+    ap.add_argument(
+        "--rows",
+        help="ingest-table rows to run, e.g. 0,3 (default all; '× plain read' needs row 0)",
+    )
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--child-files", help=argparse.SUPPRESS)
     ap.add_argument("--child-store", help=argparse.SUPPRESS)
@@ -339,10 +405,13 @@ def main() -> None:
         if len(files) != args.files and {"ingest", "coords"} - skip:
             shutil.rmtree(work / "archive", ignore_errors=True)
             files = make_archive(work / "archive", args.points, args.files)
-        print(f"archive: {args.files} LAZ files, {args.points:,} points "
-              f"({sum(f.stat().st_size for f in files) / 2**20:.0f} MiB) "
-              f"in {time.perf_counter() - t0:.0f} s; chunk {args.chunk_points:,} points, "
-              f"{args.tile_size:g} m tiles", file=sys.stderr)
+        print(
+            f"archive: {args.files} LAZ files, {args.points:,} points "
+            f"({sum(f.stat().st_size for f in files) / 2**20:.0f} MiB) "
+            f"in {time.perf_counter() - t0:.0f} s; chunk {args.chunk_points:,} points, "
+            f"{args.tile_size:g} m tiles",
+            file=sys.stderr,
+        )
         if "ingest" not in skip:
             print("\n".join(ingest_table(files, args, work)))
             print()

@@ -43,8 +43,15 @@ cv2.setNumThreads(1)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "out" / "bench-scenes"
-STEPS = ("project_zbuffer", "surface", "correlate", "superpixels", "graph_cut", "sum_of_steps",
-         "total")
+STEPS = (
+    "project_zbuffer",
+    "surface",
+    "correlate",
+    "superpixels",
+    "graph_cut",
+    "sum_of_steps",
+    "total",
+)
 
 
 def scene_for(size: tuple[int, int]) -> Path:
@@ -59,8 +66,9 @@ def _setup(size: tuple[int, int]):
     from streetcd.params import load_params
 
     scene = load_scene(scene_for(size))
-    params = load_params(ROOT / "configs" / "default.yaml"
-                         if (ROOT / "configs" / "default.yaml").exists() else None)
+    params = load_params(
+        ROOT / "configs" / "default.yaml" if (ROOT / "configs" / "default.yaml").exists() else None
+    )
     view = scene.views[len(scene.views) // 2]
     nbs = select_neighbours(view, scene.views, n=3)
     image = read_image(Path(view.image))
@@ -82,12 +90,19 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     for img, v in [(image, view), *neighbours]:
         local = v.local(cloud.origin)
         t0 = time.perf_counter()
-        pts = project_cloud(cloud.xyz, cloud.classification, local.intrinsics, local.pose,
-                            params.max_range_m)
+        pts = project_cloud(
+            cloud.xyz, cloud.classification, local.intrinsics, local.pose, params.max_range_m
+        )
         kept = pts.take(weighted_zbuffer(pts.uv, pts.depth, img, params.zbuffer))
         t1 = time.perf_counter()
-        surf = view_surface(kept.uv, kept.depth, kept.classes, img.shape[:2], params.surface,
-                            cell_px=params.zbuffer.block_window_px)
+        surf = view_surface(
+            kept.uv,
+            kept.depth,
+            kept.classes,
+            img.shape[:2],
+            params.surface,
+            cell_px=params.zbuffer.block_window_px,
+        )
         t2 = time.perf_counter()
         t["project_zbuffer"] += t1 - t0
         t["surface"] += t2 - t1
@@ -95,8 +110,10 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     t0 = time.perf_counter()
     pct = params.correlate.stretch_percentiles
     stretched = stretch_histogram(image, pct)
-    nbs = [Neighbour(stretch_histogram(img, pct), s.depth, loc.intrinsics, loc.pose)
-           for (img, _), (s, loc) in zip(neighbours, surfaces[1:], strict=True)]
+    nbs = [
+        Neighbour(stretch_histogram(img, pct), s.depth, loc.intrinsics, loc.pose)
+        for (img, _), (s, loc) in zip(neighbours, surfaces[1:], strict=True)
+    ]
     surf, local = surfaces[0]
     change, _ = _raw_change_at_cell_scale(stretched, surf, local, nbs, params)  # as detect_view
     t1 = time.perf_counter()
@@ -121,8 +138,12 @@ def baseline_slic_once(image: np.ndarray, params) -> float:
     h, w = image.shape[:2]
     cell = scale_px(params.graphcut.superpixel_cell_px, w, minimum=2.0)
     t0 = time.perf_counter()
-    slic(image, n_segments=max(1, round(h * w / cell**2)), compactness=params.graphcut.compactness,
-         start_label=0)
+    slic(
+        image,
+        n_segments=max(1, round(h * w / cell**2)),
+        compactness=params.graphcut.compactness,
+        start_label=0,
+    )
     return time.perf_counter() - t0
 
 
@@ -146,11 +167,16 @@ def run_size(size: tuple[int, int], repeat: int) -> dict:
     out["total"] = statistics.median(totals)
     baseline_slic_once(image, params)
     out["baseline_skimage_slic_full_res"] = statistics.median(
-        baseline_slic_once(image, params) for _ in range(repeat))
-    return {"size": f"{size[0]}x{size[1]}", "megapixels": size[0] * size[1] / 1e6,
-            "points": len(scene.cloud), "seconds": out, "rss_loaded_mib": rss_loaded,
-            "rss_peak_mib": max(rss_detect,
-                                resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+        baseline_slic_once(image, params) for _ in range(repeat)
+    )
+    return {
+        "size": f"{size[0]}x{size[1]}",
+        "megapixels": size[0] * size[1] / 1e6,
+        "points": len(scene.cloud),
+        "seconds": out,
+        "rss_loaded_mib": rss_loaded,
+        "rss_peak_mib": max(rss_detect, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+    }
 
 
 def main() -> None:
@@ -167,8 +193,12 @@ def main() -> None:
     for spec in args.sizes.split(","):
         w, h = map(int, spec.split("x"))
         scene_for((w, h))  # generate outside the measured child
-        proc = subprocess.run([sys.executable, __file__, "--child", spec, "--repeat",
-                               str(args.repeat)], capture_output=True, text=True, check=False)
+        proc = subprocess.run(
+            [sys.executable, __file__, "--child", spec, "--repeat", str(args.repeat)],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         if proc.returncode != 0:
             sys.exit(f"benchmark at {spec} failed:\n{proc.stderr}")
         results.append(json.loads(proc.stdout.strip().splitlines()[-1]))
@@ -183,18 +213,24 @@ def print_table(results: list[dict]) -> None:
     for name in names:
         print(f"{name:<34}" + "".join(f"{r['seconds'][name]:>14.3f}" for r in results))
     print(f"{'points in cloud':<34}" + "".join(f"{r['points']:>14d}" for r in results))
-    print(f"{'peak RSS after scene load (MiB)':<34}"
-          + "".join(f"{r['rss_loaded_mib']:>14.0f}" for r in results))
-    print(f"{'peak RSS incl. detection (MiB)':<34}"
-          + "".join(f"{r['rss_peak_mib']:>14.0f}" for r in results))
+    print(
+        f"{'peak RSS after scene load (MiB)':<34}"
+        + "".join(f"{r['rss_loaded_mib']:>14.0f}" for r in results)
+    )
+    print(
+        f"{'peak RSS incl. detection (MiB)':<34}"
+        + "".join(f"{r['rss_peak_mib']:>14.0f}" for r in results)
+    )
     goals = {"1920x1080": 0.6, "4000x3000": 3.0}
     for r in results:
         goal = goals.get(r["size"])
         if goal is not None:
             ok = r["seconds"]["total"] <= goal and r["rss_peak_mib"] <= 2048
-            print(f"{r['size']}: total {r['seconds']['total']:.2f} s (goal ≤ {goal} s), "
-                  f"peak {r['rss_peak_mib']:.0f} MiB (goal ≤ 2048): "
-                  f"{'meets' if ok else 'MISSES'} the goal")
+            print(
+                f"{r['size']}: total {r['seconds']['total']:.2f} s (goal ≤ {goal} s), "
+                f"peak {r['rss_peak_mib']:.0f} MiB (goal ≤ 2048): "
+                f"{'meets' if ok else 'MISSES'} the goal"
+            )
 
 
 if __name__ == "__main__":

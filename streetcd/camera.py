@@ -153,7 +153,9 @@ def look_at(
 # --- distortion -------------------------------------------------------------------------
 
 
-def distort(xn: np.ndarray, yn: np.ndarray, dist: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+def distort(
+    xn: np.ndarray, yn: np.ndarray, dist: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray]:
     """Apply OpenCV distortion to normalised coordinates (any matching shapes, unitless)."""
     k1, k2, p1, p2, k3 = dist
     r2 = xn * xn + yn * yn

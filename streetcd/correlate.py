@@ -68,8 +68,9 @@ class Neighbour:
     envelope: tuple[np.ndarray, np.ndarray] | None = None
 
 
-def stretch_histogram(image: np.ndarray, percentiles: tuple[float, float] = (1.0, 99.0),
-                      sample_step: int = 4) -> np.ndarray:
+def stretch_histogram(
+    image: np.ndarray, percentiles: tuple[float, float] = (1.0, 99.0), sample_step: int = 4
+) -> np.ndarray:
     """Stretch each channel linearly so its ``percentiles`` map to 0 and 255 (clipped).
 
     image : (H, W, 3) uint8 RGB. Returns (H, W, 3) float32 in [0, 255]. Percentiles are
@@ -80,8 +81,9 @@ def stretch_histogram(image: np.ndarray, percentiles: tuple[float, float] = (1.0
     return cv2.LUT(np.ascontiguousarray(image), stretch_lut(image, percentiles, sample_step))
 
 
-def stretch_lut(image: np.ndarray, percentiles: tuple[float, float] = (1.0, 99.0),
-                sample_step: int = 4) -> np.ndarray:
+def stretch_lut(
+    image: np.ndarray, percentiles: tuple[float, float] = (1.0, 99.0), sample_step: int = 4
+) -> np.ndarray:
     """The (1, 256, C) float32 look-up table :func:`stretch_histogram` applies to ``image``
     (H, W, C) uint8; non-decreasing in the level for every channel."""
     lo_pct, hi_pct = percentiles
@@ -91,14 +93,17 @@ def stretch_lut(image: np.ndarray, percentiles: tuple[float, float] = (1.0, 99.0
     lut = np.empty((1, 256, n_channels), dtype=np.float32)
     for c in range(n_channels):
         lo, hi = np.percentile(sample[:, c], [lo_pct, hi_pct])
-        lut[0, :, c] = (np.clip((levels - np.float32(lo)) * np.float32(255.0 / (hi - lo)), 0, 255)
-                        if hi > lo else levels)
+        lut[0, :, c] = (
+            np.clip((levels - np.float32(lo)) * np.float32(255.0 / (hi - lo)), 0, 255)
+            if hi > lo
+            else levels
+        )
     return lut
 
 
-def stretched_envelope(image: np.ndarray, radius_px: int,
-                       percentiles: tuple[float, float] = (1.0, 99.0)
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def stretched_envelope(
+    image: np.ndarray, radius_px: int, percentiles: tuple[float, float] = (1.0, 99.0)
+) -> tuple[np.ndarray, np.ndarray]:
     """``colour_envelope(stretch_histogram(image, percentiles), radius_px)``, bit for bit,
     from the (H, W, 3) uint8 image: the stretch is a non-decreasing map per channel, so it
     commutes with the per-channel minimum and maximum; erode and dilate run on uint8 and
@@ -110,8 +115,10 @@ def stretched_envelope(image: np.ndarray, radius_px: int,
         stretched = cv2.LUT(image, lut)
         return stretched, stretched
     kernel = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
-    return (cv2.LUT(cv2.erode(image, kernel, borderType=cv2.BORDER_REPLICATE), lut),
-            cv2.LUT(cv2.dilate(image, kernel, borderType=cv2.BORDER_REPLICATE), lut))
+    return (
+        cv2.LUT(cv2.erode(image, kernel, borderType=cv2.BORDER_REPLICATE), lut),
+        cv2.LUT(cv2.dilate(image, kernel, borderType=cv2.BORDER_REPLICATE), lut),
+    )
 
 
 def camera_rays(intrinsics: Intrinsics) -> np.ndarray:
@@ -148,8 +155,9 @@ def _lerp(a: np.ndarray, n_out: int, step: int, axis: int) -> np.ndarray:
     return a0 + (np.take(a, i0 + 1, axis=axis) - a0) * f
 
 
-def reproject(depth_p: np.ndarray, rays_p: np.ndarray, pose_p: Pose, intrinsics_q: Intrinsics,
-              pose_q: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def reproject(
+    depth_p: np.ndarray, rays_p: np.ndarray, pose_p: Pose, intrinsics_q: Intrinsics, pose_q: Pose
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where each pixel of ``p``'s surface lands in ``q``.
 
     depth_p : (H, W) float32 metres, camera z in ``p``, NaN = no surface.
@@ -178,8 +186,13 @@ def reproject(depth_p: np.ndarray, rays_p: np.ndarray, pose_p: Pose, intrinsics_
     return map_u, map_v, zq.astype(np.float32)
 
 
-def warp_neighbour(neighbour: Neighbour, depth_p: np.ndarray, rays_p: np.ndarray, pose_p: Pose,
-                   occlusion_tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+def warp_neighbour(
+    neighbour: Neighbour,
+    depth_p: np.ndarray,
+    rays_p: np.ndarray,
+    pose_p: Pose,
+    occlusion_tolerance_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """``I_qp`` of eq. 4: ``q``'s image sampled where ``p``'s surface points land in ``q``.
 
     Returns the warped image (H, W, 3) float32 and ``valid`` (H, W) bool: ``p`` has a
@@ -193,13 +206,20 @@ def warp_neighbour(neighbour: Neighbour, depth_p: np.ndarray, rays_p: np.ndarray
         valid = (map_u >= -0.5) & (map_u < w_q - 0.5) & (map_v >= -0.5) & (map_v < h_q - 0.5)
     map_u[~valid] = -1e4  # finite, far outside: remap leaves the border value there
     map_v[~valid] = -1e4
-    seen = cv2.remap(neighbour.depth, map_u, map_v, cv2.INTER_NEAREST,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    seen = cv2.remap(
+        neighbour.depth,
+        map_u,
+        map_v,
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
     with np.errstate(invalid="ignore"):
         occluded = seen < z_q - np.float32(occlusion_tolerance_m)
     valid &= ~occluded
-    warped = cv2.remap(neighbour.image, map_u, map_v, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
+    warped = cv2.remap(
+        neighbour.image, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
     return warped, valid
 
 
@@ -230,13 +250,21 @@ def colour_envelope(image: np.ndarray, radius_px: int) -> tuple[np.ndarray, np.n
     if radius_px <= 0:
         return image, image
     kernel = np.ones((2 * radius_px + 1, 2 * radius_px + 1), np.uint8)
-    return (cv2.erode(image, kernel, borderType=cv2.BORDER_REPLICATE),
-            cv2.dilate(image, kernel, borderType=cv2.BORDER_REPLICATE))
+    return (
+        cv2.erode(image, kernel, borderType=cv2.BORDER_REPLICATE),
+        cv2.dilate(image, kernel, borderType=cv2.BORDER_REPLICATE),
+    )
 
 
-def raw_change(image_p: np.ndarray, depth_p: np.ndarray, classes_p: np.ndarray,
-               intrinsics_p: Intrinsics, pose_p: Pose, neighbours: Sequence[Neighbour],
-               params: CorrelateParams = _DEFAULTS) -> tuple[np.ndarray, np.ndarray]:
+def raw_change(
+    image_p: np.ndarray,
+    depth_p: np.ndarray,
+    classes_p: np.ndarray,
+    intrinsics_p: Intrinsics,
+    pose_p: Pose,
+    neighbours: Sequence[Neighbour],
+    params: CorrelateParams = _DEFAULTS,
+) -> tuple[np.ndarray, np.ndarray]:
     """Raw change ``C_p`` of eq. 5 for view ``p``.
 
     image_p : (H, W, 3) float32 stretched RGB in [0, 255] (:func:`stretch_histogram`).
@@ -262,11 +290,22 @@ def raw_change(image_p: np.ndarray, depth_p: np.ndarray, classes_p: np.ndarray,
         q = nb.intrinsics
         radius = registration_radius_px(q.width, params)
         lo, hi = nb.envelope if nb.envelope is not None else colour_envelope(nb.image, radius)
-        _correlate_into(image_p, depth_p, rays, R_rel, t_rel,
-                        np.array([q.fx, q.fy, q.cx, q.cy, *q.dist], dtype=np.float64),
-                        q.has_distortion, lo, hi, radius > 0,
-                        np.ascontiguousarray(nb.depth, dtype=np.float32),
-                        float(params.occlusion_tolerance_m), change, support)
+        _correlate_into(
+            image_p,
+            depth_p,
+            rays,
+            R_rel,
+            t_rel,
+            np.array([q.fx, q.fy, q.cx, q.cy, *q.dist], dtype=np.float64),
+            q.has_distortion,
+            lo,
+            hi,
+            radius > 0,
+            np.ascontiguousarray(nb.depth, dtype=np.float32),
+            float(params.occlusion_tolerance_m),
+            change,
+            support,
+        )
     change[support == 0] = 0.0
     if params.low_weight_classes and params.low_class_weight != 1.0:
         low = np.isin(classes_p, params.low_weight_classes)
@@ -275,8 +314,22 @@ def raw_change(image_p: np.ndarray, depth_p: np.ndarray, classes_p: np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _correlate_into(image_p, depth_p, rays, R, t, cam, has_dist, image_lo, image_hi, envelope,
-                    depth_q, tol, change, support):  # pragma: no cover - compiled
+def _correlate_into(
+    image_p,
+    depth_p,
+    rays,
+    R,
+    t,
+    cam,
+    has_dist,
+    image_lo,
+    image_hi,
+    envelope,
+    depth_q,
+    tol,
+    change,
+    support,
+):  # pragma: no cover - compiled
     """For every pixel of p with a surface: project its 3D point into q, skip it if outside
     q or occluded there (nearest pixel of q's depth closer by more than ``tol``), else sample
     q's colour envelope (``image_lo``/``image_hi``, :func:`colour_envelope`) bilinearly

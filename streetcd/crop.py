@@ -20,7 +20,7 @@ import numpy as np
 from streetcd.camera import Intrinsics, pixel_rays
 from streetcd.errors import CRSMismatchError, InputError
 from streetcd.io.las import PointCloud, iter_las_chunks, las_info
-from streetcd.tiles import TileStore
+from streetcd.tiles import TileInfo, TileStore
 from streetcd.views import View
 
 
@@ -30,16 +30,25 @@ def frustum_bounds(intrinsics: Intrinsics, samples: int = 16) -> np.ndarray:
     w, h = intrinsics.width, intrinsics.height
     t = np.linspace(0.0, 1.0, samples)
     us, vs = -0.5 + t * w, -0.5 + t * h
-    border = np.concatenate([
-        np.column_stack([us, np.full_like(us, -0.5)]), np.column_stack([us, np.full_like(us, h - 0.5)]),
-        np.column_stack([np.full_like(vs, -0.5), vs]), np.column_stack([np.full_like(vs, w - 0.5), vs]),
-    ])
+    border = np.concatenate(
+        [
+            np.column_stack([us, np.full_like(us, -0.5)]),
+            np.column_stack([us, np.full_like(us, h - 0.5)]),
+            np.column_stack([np.full_like(vs, -0.5), vs]),
+            np.column_stack([np.full_like(vs, w - 0.5), vs]),
+        ]
+    )
     rays = pixel_rays(border, intrinsics)
     return np.array([rays[:, 0].min(), rays[:, 0].max(), rays[:, 1].min(), rays[:, 1].max()])
 
 
-def in_frustum(points: np.ndarray, view: View, max_range_m: float = 60.0,
-               buffer_m: float = 1.0, bounds: np.ndarray | None = None) -> np.ndarray:
+def in_frustum(
+    points: np.ndarray,
+    view: View,
+    max_range_m: float = 60.0,
+    buffer_m: float = 1.0,
+    bounds: np.ndarray | None = None,
+) -> np.ndarray:
     """(N,) bool: points (N, 3) float64 metres, in the frame of ``view``'s pose, inside the
     view frustum grown by ``buffer_m`` and within ``max_range_m + buffer_m`` of the camera.
     ``bounds`` is :func:`frustum_bounds` of the view's intrinsics when already known.
@@ -50,15 +59,27 @@ def in_frustum(points: np.ndarray, view: View, max_range_m: float = 60.0,
     """
     x0, x1, y0, y1 = frustum_bounds(view.intrinsics) if bounds is None else bounds
     b = buffer_m
-    limits = np.array([x0, x1, y0, y1, b * np.hypot(1.0, x0), b * np.hypot(1.0, x1),
-                       b * np.hypot(1.0, y0), b * np.hypot(1.0, y1), (max_range_m + b) ** 2])
+    limits = np.array(
+        [
+            x0,
+            x1,
+            y0,
+            y1,
+            b * np.hypot(1.0, x0),
+            b * np.hypot(1.0, x1),
+            b * np.hypot(1.0, y0),
+            b * np.hypot(1.0, y1),
+            (max_range_m + b) ** 2,
+        ]
+    )
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     return _frustum_mask(pts, view.pose.R, view.pose.t, limits)
 
 
 @numba.njit(cache=True, nogil=True)
-def _frustum_mask(points: np.ndarray, R: np.ndarray, t: np.ndarray,
-                  limits: np.ndarray) -> np.ndarray:
+def _frustum_mask(
+    points: np.ndarray, R: np.ndarray, t: np.ndarray, limits: np.ndarray
+) -> np.ndarray:
     """One fused pass of :func:`in_frustum` (a crop tests millions of points per view)."""
     x0, x1, y0, y1, bx0, bx1, by0, by1, r2 = limits
     out = np.empty(points.shape[0], dtype=np.bool_)
@@ -67,8 +88,13 @@ def _frustum_mask(points: np.ndarray, R: np.ndarray, t: np.ndarray,
         x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
         y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
         z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-        out[k] = ((x - x1 * z) <= bx1 and (x0 * z - x) <= bx0 and (y - y1 * z) <= by1
-                  and (y0 * z - y) <= by0 and x * x + y * y + z * z <= r2)
+        out[k] = (
+            (x - x1 * z) <= bx1
+            and (x0 * z - x) <= bx0
+            and (y - y1 * z) <= by1
+            and (y0 * z - y) <= by0
+            and x * x + y * y + z * z <= r2
+        )
     return out
 
 
@@ -100,8 +126,14 @@ def convex_hull_2d(points: np.ndarray) -> np.ndarray:
     def half(seq: list[tuple[float, float]]) -> list[tuple[float, float]]:
         out: list[tuple[float, float]] = []
         for p in seq:
-            while len(out) >= 2 and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
-                                     - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])) <= 0:
+            while (
+                len(out) >= 2
+                and (
+                    (out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
+                    - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])
+                )
+                <= 0
+            ):
                 out.pop()
             out.append(p)
         return out
@@ -114,10 +146,15 @@ def polygon_meets_boxes(poly: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """(M,) bool: convex polygon (K, 2) overlaps axis-aligned boxes (M, 4) minx, miny, maxx,
     maxy — separating-axis test on the box axes and the polygon's edge normals."""
     lo, hi = poly.min(axis=0), poly.max(axis=0)
-    hit = ((boxes[:, 0] <= hi[0]) & (boxes[:, 2] >= lo[0])
-           & (boxes[:, 1] <= hi[1]) & (boxes[:, 3] >= lo[1]))
-    corners = np.stack([boxes[:, [0, 1]], boxes[:, [2, 1]], boxes[:, [2, 3]], boxes[:, [0, 3]]],
-                       axis=1)  # (M, 4, 2)
+    hit = (
+        (boxes[:, 0] <= hi[0])
+        & (boxes[:, 2] >= lo[0])
+        & (boxes[:, 1] <= hi[1])
+        & (boxes[:, 3] >= lo[1])
+    )
+    corners = np.stack(
+        [boxes[:, [0, 1]], boxes[:, [2, 1]], boxes[:, [2, 3]], boxes[:, [0, 3]]], axis=1
+    )  # (M, 4, 2)
     for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
         normal = np.array([b[1] - a[1], a[0] - b[0]])  # outward for a counter-clockwise hull
         if not normal.any():
@@ -133,8 +170,9 @@ def view_footprint(view: View, max_range_m: float, buffer_m: float) -> np.ndarra
     return convex_hull_2d(frustum_hull(view, max_range_m, buffer_m)[:, :2])
 
 
-def _select(view: View, origin: np.ndarray, boxes: np.ndarray, max_range_m: float,
-            buffer_m: float) -> np.ndarray:
+def _select(
+    view: View, origin: np.ndarray, boxes: np.ndarray, max_range_m: float, buffer_m: float
+) -> np.ndarray:
     """(M,) bool: which boxes (M, 4) CRS minx, miny, maxx, maxy may hold points ``view``
     (pose in the CRS) keeps: they meet its ground footprint and its range circle's box."""
     local = view.local(origin)
@@ -144,8 +182,9 @@ def _select(view: View, origin: np.ndarray, boxes: np.ndarray, max_range_m: floa
     return near & polygon_meets_boxes(poly, boxes)
 
 
-def _lookup_box(view: View, origin: np.ndarray, max_range_m: float,
-                buffer_m: float) -> tuple[float, float, float, float]:
+def _lookup_box(
+    view: View, origin: np.ndarray, max_range_m: float, buffer_m: float
+) -> tuple[float, float, float, float]:
     """CRS box of the view's ground footprint clipped to its range (for the index lookup)."""
     poly = view_footprint(view.local(origin), max_range_m, buffer_m) + origin[:2]
     c, r = view.center[:2], max_range_m + buffer_m
@@ -169,13 +208,24 @@ def _concat(parts: list[PointCloud], origin: np.ndarray, crs: str | None) -> Poi
         arrays = [getattr(p, name) for p in parts]
         return None if any(a is None for a in arrays) else np.concatenate(arrays)
 
-    return PointCloud(np.concatenate([p.xyz for p in parts]), origin,
-                      np.concatenate([p.classification for p in parts]), cat("intensity"),
-                      cat("rgb"), cat("gps_time"), crs)
+    return PointCloud(
+        np.concatenate([p.xyz for p in parts]),
+        origin,
+        np.concatenate([p.classification for p in parts]),
+        cat("intensity"),
+        cat("rgb"),
+        cat("gps_time"),
+        crs,
+    )
 
 
-def crop_for_view(source: TileStore | str | Path | Sequence[str | Path], view: View, *,
-                  max_range_m: float = 60.0, buffer_m: float = 1.0) -> PointCloud:
+def crop_for_view(
+    source: TileStore | str | Path | Sequence[str | Path],
+    view: View,
+    *,
+    max_range_m: float = 60.0,
+    buffer_m: float = 1.0,
+) -> PointCloud:
     """The points ``view`` can see, local to the store origin.
 
     source : a :class:`TileStore` (or its path), or a list of a few LAS/LAZ files (read
@@ -184,48 +234,103 @@ def crop_for_view(source: TileStore | str | Path | Sequence[str | Path], view: V
     Returns a PointCloud (xyz (N, 3) float64 metres, local; classes; RGB when every source
     has it), possibly empty. Tiles come through the process-wide LRU cache.
     """
+    return crop_for_views(source, [view], max_range_m=max_range_m, buffer_m=buffer_m)
+
+
+def crop_for_views(
+    source: TileStore | str | Path | Sequence[str | Path],
+    views: Sequence[View],
+    *,
+    max_range_m: float = 60.0,
+    buffer_m: float = 1.0,
+) -> PointCloud:
+    """The points any of ``views`` can see, as one cloud (see :func:`crop_for_view`).
+
+    A worker that checks several neighbouring views crops once for all of them: each tile is
+    read and each point kept once, and the views share one cloud object, so the detector's
+    surface cache (keyed on the cloud) builds each view's surface only once.
+    """
     _check_args(max_range_m, buffer_m)
+    if not views:
+        raise InputError("crop_for_views: no views given")
     if isinstance(source, (str, Path)) and not str(source).lower().endswith((".las", ".laz")):
         source = TileStore.open(source)
     if isinstance(source, TileStore):
-        return _crop_store(source, view, max_range_m, buffer_m)
+        return _crop_store(source, views, max_range_m, buffer_m)
     paths = [Path(source)] if isinstance(source, (str, Path)) else [Path(p) for p in source]
-    return _crop_files(paths, view, max_range_m, buffer_m)
+    return _crop_files(paths, views, max_range_m, buffer_m)
 
 
-def _crop_store(store: TileStore, view: View, max_range_m: float, buffer_m: float) -> PointCloud:
-    local = view.local(store.origin)
-    candidates = store.tiles_in_bbox(*_lookup_box(view, store.origin, max_range_m, buffer_m))
+def _union_mask(
+    points: np.ndarray,
+    views: Sequence[View],
+    origin: np.ndarray,
+    max_range_m: float,
+    buffer_m: float,
+) -> np.ndarray:
+    """(N,) bool: points (N, 3) local to ``origin`` inside the frustum of any of ``views``."""
+    keep = np.zeros(len(points), dtype=bool)
+    for view in views:
+        local = view.local(origin)
+        keep |= in_frustum(points, local, max_range_m, buffer_m, frustum_bounds(view.intrinsics))
+    return keep
+
+
+def _hits(
+    views: Sequence[View],
+    origin: np.ndarray,
+    boxes: np.ndarray,
+    max_range_m: float,
+    buffer_m: float,
+) -> np.ndarray:
+    """(V, M) bool: which of the boxes each view may see (see :func:`_select`)."""
+    return np.array([_select(v, origin, boxes, max_range_m, buffer_m) for v in views])
+
+
+def _crop_store(
+    store: TileStore, views: Sequence[View], max_range_m: float, buffer_m: float
+) -> PointCloud:
+    candidates: dict[str, TileInfo] = {}  # tile id -> tile, in order of first appearance
+    for view in views:
+        for tile in store.tiles_in_bbox(*_lookup_box(view, store.origin, max_range_m, buffer_m)):
+            candidates.setdefault(tile.id, tile)
     if not candidates:
         return _concat([], store.origin, store.crs)
-    boxes = np.array([t.bounds[0:2] + t.bounds[3:5] for t in candidates])
-    bounds = frustum_bounds(view.intrinsics)
+    tiles = list(candidates.values())
+    boxes = np.array([t.bounds[0:2] + t.bounds[3:5] for t in tiles])
+    hits = _hits(views, store.origin, boxes, max_range_m, buffer_m)
     parts = []
-    for tile, hit in zip(candidates, _select(view, store.origin, boxes, max_range_m, buffer_m),
-                         strict=True):
-        if hit:
+    for k, tile in enumerate(tiles):
+        seeing = [v for v, hit in zip(views, hits[:, k], strict=True) if hit]
+        if seeing:
             cloud = store.read_tile(tile.id)
-            keep = in_frustum(cloud.xyz, local, max_range_m, buffer_m, bounds)
-            parts.append(cloud.subset(keep))
+            parts.append(
+                cloud.subset(_union_mask(cloud.xyz, seeing, store.origin, max_range_m, buffer_m))
+            )
     return _concat(parts, store.origin, store.crs)
 
 
-def _crop_files(paths: list[Path], view: View, max_range_m: float, buffer_m: float) -> PointCloud:
+def _crop_files(
+    paths: list[Path], views: Sequence[View], max_range_m: float, buffer_m: float
+) -> PointCloud:
     infos = [las_info(p) for p in sorted(paths)]
     if not infos:
         raise InputError("crop_for_view: no LAS/LAZ files given")
     for info in infos[1:]:
         if info.crs != infos[0].crs:
-            raise CRSMismatchError(f"{info.path}: field 'CRS' is {info.crs}, but "
-                                   f"{infos[0].path.name} is in {infos[0].crs}")
+            raise CRSMismatchError(
+                f"{info.path}: field 'CRS' is {info.crs}, but "
+                f"{infos[0].path.name} is in {infos[0].crs}"
+            )
     origin = np.floor(np.min([i.mins for i in infos], axis=0) / 1000.0) * 1000.0
-    local = view.local(origin)
     boxes = np.array([[*i.mins[:2], *i.maxs[:2]] for i in infos])
-    bounds = frustum_bounds(view.intrinsics)
+    hits = _hits(views, origin, boxes, max_range_m, buffer_m)
     parts = []
-    for info, hit in zip(infos, _select(view, origin, boxes, max_range_m, buffer_m), strict=True):
-        if hit:
+    for k, info in enumerate(infos):
+        seeing = [v for v, hit in zip(views, hits[:, k], strict=True) if hit]
+        if seeing:
             for chunk in iter_las_chunks(info.path, origin=origin):
-                keep = in_frustum(chunk.xyz, local, max_range_m, buffer_m, bounds)
-                parts.append(chunk.subset(keep))
+                parts.append(
+                    chunk.subset(_union_mask(chunk.xyz, seeing, origin, max_range_m, buffer_m))
+                )
     return _concat(parts, origin, infos[0].crs)

@@ -119,8 +119,10 @@ def _check_image(image: np.ndarray, view: View) -> np.ndarray:
     image = np.asarray(image)
     intr = view.intrinsics
     if image.dtype != np.uint8 or image.shape != (intr.height, intr.width, 3):
-        raise InputError(f"view {view.name!r}: image is {image.dtype} {image.shape}, the "
-                         f"camera expects uint8 ({intr.height}, {intr.width}, 3)")
+        raise InputError(
+            f"view {view.name!r}: image is {image.dtype} {image.shape}, the "
+            f"camera expects uint8 ({intr.height}, {intr.width}, 3)"
+        )
     return image
 
 
@@ -152,11 +154,21 @@ class SurfaceCache:
     @staticmethod
     def key(image: np.ndarray, local: View, cloud: PointCloud, params: DetectParams) -> tuple:
         intr, pose = local.intrinsics, local.pose
-        return (local.name, pose.R.tobytes(), pose.t.tobytes(), intr, image.shape,
-                zlib.crc32(memoryview(np.ascontiguousarray(image)).cast("B")),
-                params.zbuffer, params.surface, params.max_range_m,
-                id(cloud.xyz), id(cloud.classification), len(cloud.xyz),
-                np.asarray(cloud.origin, np.float64).tobytes())
+        return (
+            local.name,
+            pose.R.tobytes(),
+            pose.t.tobytes(),
+            intr,
+            image.shape,
+            zlib.crc32(np.ascontiguousarray(image).data.cast("B")),
+            params.zbuffer,
+            params.surface,
+            params.max_range_m,
+            id(cloud.xyz),
+            id(cloud.classification),
+            len(cloud.xyz),
+            np.asarray(cloud.origin, np.float64).tobytes(),
+        )
 
     def get(self, key: tuple, cloud: PointCloud) -> Any:
         self._drop_dead()
@@ -206,28 +218,41 @@ def _surface_bytes(surf: Any) -> int:
 SURFACES = SurfaceCache()  # per process: a worker detecting a segment's views reuses them
 
 
-def _surface(image: np.ndarray, local: View, cloud: PointCloud, params: DetectParams,
-             cache: SurfaceCache | None) -> Any:
+def _surface(
+    image: np.ndarray,
+    local: View,
+    cloud: PointCloud,
+    params: DetectParams,
+    cache: SurfaceCache | None,
+) -> Any:
     """The view's surface from ``cache`` or built (and cached); EmptyViewError as
     :func:`streetcd.surface.surface_for_view`."""
     from streetcd.surface import surface_for_view
 
-    key = None
-    if cache is not None:
-        key = cache.key(image, local, cloud, params)
-        surf = cache.get(key, cloud)
-        if surf is not None:
-            return surf
-    surf, _ = surface_for_view(cloud.xyz, cloud.classification, image, local.intrinsics,
-                               local.pose, params)
-    if cache is not None:
+    def build() -> Any:
+        return surface_for_view(
+            cloud.xyz, cloud.classification, image, local.intrinsics, local.pose, params
+        )[0]
+
+    if cache is None:
+        return build()
+    key = cache.key(image, local, cloud, params)
+    surf = cache.get(key, cloud)
+    if surf is None:
+        surf = build()
         cache.put(key, cloud, surf)
     return surf
 
 
-def detect_view(image: np.ndarray, view: View, neighbours: Sequence[tuple[np.ndarray, View]],
-                cloud: PointCloud, params: DetectParams = _DEFAULTS, *,
-                surfaces: SurfaceCache | None = SURFACES) -> DetectionResult:
+def detect_view(
+    image: np.ndarray,
+    view: View,
+    neighbours: Sequence[tuple[np.ndarray, View]],
+    cloud: PointCloud,
+    params: DetectParams = _DEFAULTS,
+    *,
+    surfaces: SurfaceCache | None = SURFACES,
+) -> DetectionResult:
     """Change mask of one view against the reference cloud (paper §3.2–3.4).
 
     image : (H, W, 3) uint8 RGB of ``view``. neighbours : (image, view) pairs of overlapping
@@ -256,8 +281,9 @@ def detect_view(image: np.ndarray, view: View, neighbours: Sequence[tuple[np.nda
     except EmptyViewError as exc:
         raise EmptyViewError(f"view {view.name!r} sees no reference points: {exc}") from None
     if not surf.valid.any():
-        raise EmptyViewError(f"view {view.name!r} sees no reference surface (points project "
-                             "but form no triangle)")
+        raise EmptyViewError(
+            f"view {view.name!r} sees no reference surface (points project but form no triangle)"
+        )
     lap("surface")
     used: list[Neighbour] = []
     names: list[str] = []
@@ -274,8 +300,9 @@ def detect_view(image: np.ndarray, view: View, neighbours: Sequence[tuple[np.nda
         # not needed (raw_change reads only the envelope)
         radius = registration_radius_px(nb_local.intrinsics.width, params.correlate)
         lo, hi = stretched_envelope(nb_image, radius, params.correlate.stretch_percentiles)
-        used.append(Neighbour(lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose,
-                              envelope=(lo, hi)))
+        used.append(
+            Neighbour(lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi))
+        )
         names.append(nb_view.name)
         lap("stretch")
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
@@ -286,21 +313,33 @@ def detect_view(image: np.ndarray, view: View, neighbours: Sequence[tuple[np.nda
     lap("node_energy")
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut)
     lap("graphcut")
-    region_labels, regions = changed_regions(cut.mask, energy, surf.depth, surf.classes,
-                                             local.intrinsics, local.pose)
+    region_labels, regions = changed_regions(
+        cut.mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
+    )
     lap("regions")
     score = max((r.score for r in regions), default=0.0)
     return DetectionResult(
-        mask=cut.mask, raw_change=change, node_energy=energy, superpixels=cut.superpixels,
-        depth=surf.depth, classes=surf.classes, regions=regions, score=float(score),
-        changed_fraction=float(cut.mask.mean()), origin=np.asarray(cloud.origin, np.float64),
-        region_labels=region_labels, support=support, view=view.name, neighbours=tuple(names),
-        timings=timings)
+        mask=cut.mask,
+        raw_change=change,
+        node_energy=energy,
+        superpixels=cut.superpixels,
+        depth=surf.depth,
+        classes=surf.classes,
+        regions=regions,
+        score=float(score),
+        changed_fraction=float(cut.mask.mean()),
+        origin=np.asarray(cloud.origin, np.float64),
+        region_labels=region_labels,
+        support=support,
+        view=view.name,
+        neighbours=tuple(names),
+        timings=timings,
+    )
 
 
-def _raw_change_at_cell_scale(stretched: np.ndarray, surf: Any, local: View,
-                              used: Sequence[Neighbour], params: DetectParams
-                              ) -> tuple[np.ndarray, np.ndarray]:
+def _raw_change_at_cell_scale(
+    stretched: np.ndarray, surf: Any, local: View, used: Sequence[Neighbour], params: DetectParams
+) -> tuple[np.ndarray, np.ndarray]:
     """Raw change (eq. 5), computed at a resolution where a superpixel cell is about
     ``CHANGE_CELL_PX`` wide and upsampled (bilinear).
 
@@ -315,24 +354,43 @@ def _raw_change_at_cell_scale(stretched: np.ndarray, surf: Any, local: View,
     intr = local.intrinsics
     hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
     if (hs, ws) == (h, w):
-        return raw_change(stretched, surf.depth, surf.classes, intr, local.pose, used,
-                          params.correlate)
+        return raw_change(
+            stretched, surf.depth, surf.classes, intr, local.pose, used, params.correlate
+        )
     sx, sy = ws / w, hs / h
-    small = Intrinsics(ws, hs, intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5,
-                       (intr.cy + 0.5) * sy - 0.5, intr.dist)
+    small = Intrinsics(
+        ws,
+        hs,
+        intr.fx * sx,
+        intr.fy * sy,
+        (intr.cx + 0.5) * sx - 0.5,
+        (intr.cy + 0.5) * sy - 0.5,
+        intr.dist,
+    )
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
     change, support = raw_change(
         cv2.resize(stretched, (ws, hs), interpolation=cv2.INTER_AREA),
         np.ascontiguousarray(surf.depth[rows][:, cols]),
-        np.ascontiguousarray(surf.classes[rows][:, cols]), small, local.pose, used,
-        params.correlate)
-    return (cv2.resize(change, (w, h), interpolation=cv2.INTER_LINEAR),
-            cv2.resize(support, (w, h), interpolation=cv2.INTER_NEAREST))
+        np.ascontiguousarray(surf.classes[rows][:, cols]),
+        small,
+        local.pose,
+        used,
+        params.correlate,
+    )
+    return (
+        cv2.resize(change, (w, h), interpolation=cv2.INTER_LINEAR),
+        cv2.resize(support, (w, h), interpolation=cv2.INTER_NEAREST),
+    )
 
 
-def changed_regions(mask: np.ndarray, energy: np.ndarray, depth: np.ndarray,
-                    classes: np.ndarray, intrinsics: Intrinsics, pose: Any
-                    ) -> tuple[np.ndarray, list[Region]]:
+def changed_regions(
+    mask: np.ndarray,
+    energy: np.ndarray,
+    depth: np.ndarray,
+    classes: np.ndarray,
+    intrinsics: Intrinsics,
+    pose: Any,
+) -> tuple[np.ndarray, list[Region]]:
     """8-connected components of ``mask`` (H, W) bool as :class:`Region` s.
 
     energy (H, W) float32 node energy, depth (H, W) float32 metres, classes (H, W) uint8,
@@ -342,8 +400,7 @@ def changed_regions(mask: np.ndarray, energy: np.ndarray, depth: np.ndarray,
 
     if not mask.any():  # most views: skip labelling and scanning a blank image
         return np.zeros(mask.shape, np.int32), []
-    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8,
-                                        ltype=cv2.CV_32S)
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     regions: list[Region] = []
     for k, box in enumerate(ndimage.find_objects(labels), start=1):
         if box is None:
@@ -353,18 +410,30 @@ def changed_regions(mask: np.ndarray, energy: np.ndarray, depth: np.ndarray,
         z = depth[rows, cols]
         has = np.isfinite(z)
         if has.any():
-            pick = np.flatnonzero(has)[::max(1, int(has.sum()) // _REGION_SAMPLES)]
-            pts = backproject(np.column_stack([cols[pick], rows[pick]]).astype(np.float64),
-                              z[pick].astype(np.float64), intrinsics, pose)
+            pick = np.flatnonzero(has)[:: max(1, int(has.sum()) // _REGION_SAMPLES)]
+            pts = backproject(
+                np.column_stack([cols[pick], rows[pick]]).astype(np.float64),
+                z[pick].astype(np.float64),
+                intrinsics,
+                pose,
+            )
             centroid = pts.mean(axis=0)
             lo, hi = np.percentile(pts, BBOX_PERCENTILES, axis=0)
             dominant = int(np.bincount(classes[rows[has], cols[has]], minlength=256).argmax())
         else:
             centroid = lo = hi = np.full(3, np.nan)
             dominant = 0
-        regions.append(Region(label=k, pixels=int(rows.size),
-                              score=float(energy[rows, cols].mean()), centroid=centroid,
-                              bbox_min=lo, bbox_max=hi, dominant_class=dominant))
+        regions.append(
+            Region(
+                label=k,
+                pixels=int(rows.size),
+                score=float(energy[rows, cols].mean()),
+                centroid=centroid,
+                bbox_min=lo,
+                bbox_max=hi,
+                dominant_class=dominant,
+            )
+        )
     return labels, regions
 
 
@@ -405,15 +474,22 @@ def load_clouds(paths: Sequence[str | Path]) -> PointCloud:
     if len(crss) > 1:
         listed = ", ".join(f"{p}: {c.crs}" for p, c in zip(paths, clouds, strict=True))
         raise CRSMismatchError(f"point cloud files have different CRSs ({listed})")
-    return PointCloud(xyz=np.concatenate([c.xyz for c in clouds]), origin=first.origin,
-                      classification=np.concatenate([c.classification for c in clouds]),
-                      crs=next(iter(crss), None))
+    return PointCloud(
+        xyz=np.concatenate([c.xyz for c in clouds]),
+        origin=first.origin,
+        classification=np.concatenate([c.classification for c in clouds]),
+        crs=next(iter(crss), None),
+    )
 
 
-def detect_files(view_name: str, poses: PoseSet, image_dir: str | Path, cloud: PointCloud,
-                 params: DetectParams = _DEFAULTS,
-                 neighbour_names: Sequence[str] | None = None,
-                 ) -> tuple[DetectionResult, View, np.ndarray]:
+def detect_files(
+    view_name: str,
+    poses: PoseSet,
+    image_dir: str | Path,
+    cloud: PointCloud,
+    params: DetectParams = _DEFAULTS,
+    neighbour_names: Sequence[str] | None = None,
+) -> tuple[DetectionResult, View, np.ndarray]:
     """Detect changes in the view ``view_name`` of ``poses`` with images from ``image_dir``.
 
     Without ``neighbour_names`` the overlapping views are chosen by
@@ -424,8 +500,7 @@ def detect_files(view_name: str, poses: PoseSet, image_dir: str | Path, cloud: P
 
     view = poses.get(view_name)
     if poses.crs and cloud.crs and poses.crs != cloud.crs:
-        raise CRSMismatchError(f"poses {poses.source} are in {poses.crs}, the cloud in "
-                               f"{cloud.crs}")
+        raise CRSMismatchError(f"poses {poses.source} are in {poses.crs}, the cloud in {cloud.crs}")
     if neighbour_names is None:
         nb_views = select_neighbours(view, poses.views, n=params.correlate.n_neighbours)
     else:
@@ -459,17 +534,21 @@ def overlay(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 RGB: ``image`` with the changed pixels tinted red and outlined."""
     out = image.copy()
     out[mask] = (0.5 * out[mask] + np.array([127.5, 0.0, 0.0])).astype(np.uint8)
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
-                                   cv2.CHAIN_APPROX_SIMPLE)
+    contours, _ = cv2.findContours(
+        mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE
+    )
     cv2.drawContours(out, contours, -1, (255, 255, 0), max(1, image.shape[1] // 800))
     return out
 
 
 def summary(result: DetectionResult, view: View) -> dict[str, Any]:
     """The JSON summary of one view: score, changed fraction, regions in CRS metres, timings."""
+
     def crs(local: np.ndarray) -> list[float | None]:
-        return [None if not math.isfinite(v) else round(float(v), 3)
-                for v in np.asarray(local) + result.origin]
+        return [
+            None if not math.isfinite(v) else round(float(v), 3)
+            for v in np.asarray(local) + result.origin
+        ]
 
     return {
         "view": view.name,
@@ -477,22 +556,34 @@ def summary(result: DetectionResult, view: View) -> dict[str, Any]:
         "changed_fraction": round(result.changed_fraction, 6),
         "neighbours": list(result.neighbours),
         "origin": [float(v) for v in result.origin],
-        "regions": [{"label": r.label, "pixels": r.pixels, "score": round(r.score, 4),
-                     "centroid": crs(r.centroid), "bbox_min": crs(r.bbox_min),
-                     "bbox_max": crs(r.bbox_max), "dominant_class": r.dominant_class}
-                    for r in result.regions],
+        "regions": [
+            {
+                "label": r.label,
+                "pixels": r.pixels,
+                "score": round(r.score, 4),
+                "centroid": crs(r.centroid),
+                "bbox_min": crs(r.bbox_min),
+                "bbox_max": crs(r.bbox_max),
+                "dominant_class": r.dominant_class,
+            }
+            for r in result.regions
+        ],
         "timings_s": {k: round(v, 4) for k, v in result.timings.items()},
     }
 
 
-def write_outputs(result: DetectionResult, view: View, image: np.ndarray,
-                  out_dir: str | Path) -> dict[str, Path]:
+def write_outputs(
+    result: DetectionResult, view: View, image: np.ndarray, out_dir: str | Path
+) -> dict[str, Path]:
     """Write ``<stem>.mask.png`` (uint8 0/255), ``<stem>.overlay.jpg`` and ``<stem>.json``
     into ``out_dir``, each atomically. Returns the paths by kind."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths = {"mask": out / f"{view.stem}.mask.png", "overlay": out / f"{view.stem}.overlay.jpg",
-             "summary": out / f"{view.stem}.json"}
+    paths = {
+        "mask": out / f"{view.stem}.mask.png",
+        "overlay": out / f"{view.stem}.overlay.jpg",
+        "summary": out / f"{view.stem}.json",
+    }
     _atomic_write(paths["mask"], _encode(".png", result.mask.astype(np.uint8) * 255))
     bgr = cv2.cvtColor(overlay(image, result.mask), cv2.COLOR_RGB2BGR)
     _atomic_write(paths["overlay"], _encode(".jpg", bgr))

@@ -85,8 +85,9 @@ def load_scene(root: str | Path) -> Scene:
         raise MissingInputError(f"{root / 'cloud'}: no LAS/LAZ files")
     cloud = load_clouds(files)
     colmap = root / "poses" / "colmap"
-    poses = read_poses(colmap if colmap.exists() else root / "poses" / "poses_opk.csv",
-                       image_dir=root / "images")
+    poses = read_poses(
+        colmap if colmap.exists() else root / "poses" / "poses_opk.csv", image_dir=root / "images"
+    )
     return Scene(root, manifest, cloud, poses.views)
 
 
@@ -125,12 +126,16 @@ class Report:
             "scene": self.scene,
             "n_views": len(self.views),
             "overall": self.overall.as_dict(),
-            "per_type": {t: {"ns": r.ns, "ngt": r.ngt, "ncdc": r.ncdc, "nfdc": r.nfdc}
-                         for t, r in self.per_type.items()},
+            "per_type": {
+                t: {"ns": r.ns, "ngt": r.ngt, "ncdc": r.ncdc, "nfdc": r.nfdc}
+                for t, r in self.per_type.items()
+            },
             "seconds_per_view": self.seconds_per_view,
             "baselines": {k: s.as_dict() for k, s in self.baselines.items()},
-            "per_view": [{"name": v.name, **summarize([v.score]).as_dict(),
-                          "seconds": v.seconds} for v in self.views],
+            "per_view": [
+                {"name": v.name, **summarize([v.score]).as_dict(), "seconds": v.seconds}
+                for v in self.views
+            ],
             "params": self.params,
         }
 
@@ -140,15 +145,25 @@ def threshold_baseline(raw_change: np.ndarray, threshold: float) -> np.ndarray:
     return np.asarray(raw_change) >= threshold
 
 
-def _score(mask: np.ndarray, truth: dict[str, np.ndarray], classes_raster: np.ndarray | None,
-           ) -> ViewScore:
-    return score_view(mask, truth["mask"], truth["instances"], truth["dontcare"],
-                      class_raster=classes_raster)
+def _score(
+    mask: np.ndarray,
+    truth: dict[str, np.ndarray],
+    classes_raster: np.ndarray | None,
+) -> ViewScore:
+    return score_view(
+        mask, truth["mask"], truth["instances"], truth["dontcare"], class_raster=classes_raster
+    )
 
 
-def evaluate_view(image: np.ndarray, view: View, neighbours: Sequence[tuple[np.ndarray, View]],
-                  cloud: PointCloud, truth: dict[str, np.ndarray], params: DetectParams,
-                  baselines: bool = True) -> ViewOutcome:
+def evaluate_view(
+    image: np.ndarray,
+    view: View,
+    neighbours: Sequence[tuple[np.ndarray, View]],
+    cloud: PointCloud,
+    truth: dict[str, np.ndarray],
+    params: DetectParams,
+    baselines: bool = True,
+) -> ViewOutcome:
     """Detect changes in one view and score it and the baselines against ``truth``
     ({"mask", "instances", "dontcare"} (H, W) arrays)."""
     t0 = time.perf_counter()
@@ -158,18 +173,23 @@ def evaluate_view(image: np.ndarray, view: View, neighbours: Sequence[tuple[np.n
     extra: dict[str, ViewScore] = {}
     if baselines:
         for t in THRESHOLDS:
-            extra[f"threshold_{t}"] = _score(threshold_baseline(result.raw_change, t), truth,
-                                             result.classes)
+            extra[f"threshold_{t}"] = _score(
+                threshold_baseline(result.raw_change, t), truth, result.classes
+            )
         for name, switches in ABLATIONS.items():
             gparams = replace(params.graphcut, **switches)
-            mask = (result.mask if gparams == params.graphcut
-                    else regraphcut(image, result, params, gparams))
+            mask = (
+                result.mask
+                if gparams == params.graphcut
+                else regraphcut(image, result, params, gparams)
+            )
             extra[name] = _score(mask, truth, result.classes)
     return ViewOutcome(view.name, score, extra, seconds)
 
 
-def regraphcut(image: np.ndarray, result: Any, params: DetectParams,
-               gparams: GraphCutParams) -> np.ndarray:
+def regraphcut(
+    image: np.ndarray, result: Any, params: DetectParams, gparams: GraphCutParams
+) -> np.ndarray:
     """The graph cut (eq. 6–9) and speckle filter again on one view's node energy, depth,
     classes and superpixels (reused: the switches of eq. 8 do not change them) with other
     graph-cut parameters; (H, W) bool mask."""
@@ -177,20 +197,33 @@ def regraphcut(image: np.ndarray, result: Any, params: DetectParams,
     from streetcd.graphcut import cut_changes
 
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
-    return cut_changes(result.node_energy, stretched, result.depth, result.classes, gparams,
-                       labels=result.superpixels).mask
+    return cut_changes(
+        result.node_energy,
+        stretched,
+        result.depth,
+        result.classes,
+        gparams,
+        labels=result.superpixels,
+    ).mask
 
 
 def _truth(scene: Scene, rec: dict[str, Any]) -> dict[str, np.ndarray]:
     root = scene.root
-    return {"mask": read_mask(root / rec["mask"]),
-            "instances": read_mask(root / rec["instances"], np.uint16),
-            "dontcare": read_mask(root / rec["dontcare"])}
+    return {
+        "mask": read_mask(root / rec["mask"]),
+        "instances": read_mask(root / rec["instances"], np.uint16),
+        "dontcare": read_mask(root / rec["dontcare"]),
+    }
 
 
-def evaluate_scene(root: str | Path, params: DetectParams | None = None, *,
-                   max_views: int | None = None, baselines: bool = True,
-                   progress: Progress | None = None) -> Report:
+def evaluate_scene(
+    root: str | Path,
+    params: DetectParams | None = None,
+    *,
+    max_views: int | None = None,
+    baselines: bool = True,
+    progress: Progress | None = None,
+) -> Report:
     """Run and score every view (or the first ``max_views``) of a synthetic scene
     (``params`` None: the paper's defaults)."""
     from streetcd.neighbours import select_neighbours
@@ -210,23 +243,38 @@ def evaluate_scene(root: str | Path, params: DetectParams | None = None, *,
 
     outcomes = []
     for v in views:
-        nbs = select_neighbours(v, [c for c in scene.views if c.name != v.name],
-                                n=params.correlate.n_neighbours)
+        nbs = select_neighbours(
+            v, [c for c in scene.views if c.name != v.name], n=params.correlate.n_neighbours
+        )
         keep = {v.name, *(n.name for n in nbs)}
         for name in list(cache):  # views come in trajectory order; drop what left the window
             if name not in keep:
                 del cache[name]
         truth = _truth(scene, scene.view_record(v))
-        outcomes.append(evaluate_view(image_of(v), v, [(image_of(n), n) for n in nbs],
-                                      scene.cloud, truth, params, baselines))
+        outcomes.append(
+            evaluate_view(
+                image_of(v),
+                v,
+                [(image_of(n), n) for n in nbs],
+                scene.cloud,
+                truth,
+                params,
+                baselines,
+            )
+        )
         if progress is not None:
             progress(v.name)
     scores = [o.score for o in outcomes]
     base = {k: summarize(o.baselines[k] for o in outcomes) for k in outcomes[0].baselines}
     m = scene.manifest
-    return Report(summarize(scores), per_type_table(m.get("objects", []), m.get("changes", []),
-                                                    scores),
-                  base, tuple(outcomes), str(scene.root), params_to_dict(params))
+    return Report(
+        summarize(scores),
+        per_type_table(m.get("objects", []), m.get("changes", []), scores),
+        base,
+        tuple(outcomes),
+        str(scene.root),
+        params_to_dict(params),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -258,17 +306,23 @@ class SweepPoint:
     seconds_per_view: float
 
 
-def sweep_pose_noise(levels: Iterable[float], cache_dir: str | Path, params: DetectParams,
-                     *, seed: int = 0, scene_kwargs: dict[str, Any] | None = None,
-                     max_views: int | None = None,
-                     progress: Progress | None = None) -> list[SweepPoint]:
+def sweep_pose_noise(
+    levels: Iterable[float],
+    cache_dir: str | Path,
+    params: DetectParams,
+    *,
+    seed: int = 0,
+    scene_kwargs: dict[str, Any] | None = None,
+    max_views: int | None = None,
+    progress: Progress | None = None,
+) -> list[SweepPoint]:
     """Kappa (and the other rates) against the registration error: one scene per noise level,
     all from the same seed, so only the written poses differ."""
     points = []
     for level in levels:
-        root = ensure_scene(cache_dir, seed=seed, pose_noise_px=float(level),
-                            **(scene_kwargs or {}))
-        rep = evaluate_scene(root, params, max_views=max_views, baselines=False,
-                             progress=progress)
+        root = ensure_scene(
+            cache_dir, seed=seed, pose_noise_px=float(level), **(scene_kwargs or {})
+        )
+        rep = evaluate_scene(root, params, max_views=max_views, baselines=False, progress=progress)
         points.append(SweepPoint(float(level), rep.overall, rep.seconds_per_view))
     return points

@@ -59,9 +59,15 @@ def _s_curve(c, out, a, b, lo, hi):  # pragma: no cover - compiled
         out[i] = min(max((s - lo) * scale, 0.0), 1.0)
 
 
-def smoothness(color_i: np.ndarray, color_j: np.ndarray, depth_i: np.ndarray,
-               depth_j: np.ndarray, class_i: np.ndarray, class_j: np.ndarray,
-               params: GraphCutParams = _DEFAULTS) -> np.ndarray:
+def smoothness(
+    color_i: np.ndarray,
+    color_j: np.ndarray,
+    depth_i: np.ndarray,
+    depth_j: np.ndarray,
+    class_i: np.ndarray,
+    class_j: np.ndarray,
+    params: GraphCutParams = _DEFAULTS,
+) -> np.ndarray:
     """Eq. 8–9 (corrected): similarity ``S_ij`` of two nodes, paid when their labels differ.
 
     ``S = min(exp(−‖I_i − I_j‖ / color_scale), exp(−|z_i − z_j| / depth_scale_m)) · [G_i = G_j]``
@@ -73,8 +79,9 @@ def smoothness(color_i: np.ndarray, color_j: np.ndarray, depth_i: np.ndarray,
     """
     s = np.ones(len(class_i), dtype=np.float64)
     if params.use_color:
-        dc = np.linalg.norm(np.asarray(color_i, np.float64) - np.asarray(color_j, np.float64),
-                            axis=1)
+        dc = np.linalg.norm(
+            np.asarray(color_i, np.float64) - np.asarray(color_j, np.float64), axis=1
+        )
         s = np.minimum(s, np.exp(-dc / params.color_scale))
     if params.use_depth:
         di, dj = np.asarray(depth_i, np.float64), np.asarray(depth_j, np.float64)
@@ -91,8 +98,9 @@ def _work_scale(width: int, params: GraphCutParams) -> tuple[float, float]:
     return cell, min(1.0, params.superpixel_work_cell_px / cell)
 
 
-def superpixels(image: np.ndarray, classes: np.ndarray,
-                params: GraphCutParams = _DEFAULTS) -> np.ndarray:
+def superpixels(
+    image: np.ndarray, classes: np.ndarray, params: GraphCutParams = _DEFAULTS
+) -> np.ndarray:
     """Class-aware SLIC superpixels (eq. 10–11), labels 0..n−1.
 
     image : (H, W, 3) float32 RGB in [0, 255]; classes : (H, W) uint8 class codes.
@@ -120,13 +128,21 @@ def superpixels(image: np.ndarray, classes: np.ndarray,
     _, rank = np.unique(cls, return_inverse=True)
     rank = rank.reshape(hs, ws).astype(np.int32)
     step = max(2.0, cell * scale)
-    labels = _slic(lab, rank, int(rank.max()) + 1, float(step), float(params.compactness),
-                   float(params.class_penalty), _SLIC_ITERATIONS)
+    labels = _slic(
+        lab,
+        rank,
+        int(rank.max()) + 1,
+        float(step),
+        float(params.compactness),
+        float(params.class_penalty),
+        _SLIC_ITERATIONS,
+    )
     if (hs, ws) != (h, w):
         # np.take keeps the result C-contiguous (``a[rows][:, cols]`` is not), which spares
         # superpixel_stats and adjacency a full-size copy each
-        labels = np.take(np.take(labels, nearest_index(h, hs), axis=0), nearest_index(w, ws),
-                         axis=1)
+        labels = np.take(
+            np.take(labels, nearest_index(h, hs), axis=0), nearest_index(w, ws), axis=1
+        )
     return labels
 
 
@@ -299,16 +315,25 @@ class SuperpixelStats:
     energy: np.ndarray
 
 
-def superpixel_stats(labels: np.ndarray, image: np.ndarray, depth: np.ndarray,
-                     classes: np.ndarray, energy: np.ndarray) -> SuperpixelStats:
+def superpixel_stats(
+    labels: np.ndarray,
+    image: np.ndarray,
+    depth: np.ndarray,
+    classes: np.ndarray,
+    energy: np.ndarray,
+) -> SuperpixelStats:
     """Mean colour, depth (over pixels with a surface), majority class and mean node energy
     of each superpixel; inputs (H, W[, 3]) as in :func:`cut_changes`."""
     labels = np.ascontiguousarray(labels, dtype=np.int32)
     n = int(labels.max()) + 1
     count, color, depth_sum, n_depth, votes, energy_sum = _sums(
-        labels, n, np.ascontiguousarray(image, dtype=np.float32),
-        np.ascontiguousarray(depth, dtype=np.float32), np.ascontiguousarray(classes, np.uint8),
-        np.ascontiguousarray(energy, dtype=np.float32))
+        labels,
+        n,
+        np.ascontiguousarray(image, dtype=np.float32),
+        np.ascontiguousarray(depth, dtype=np.float32),
+        np.ascontiguousarray(classes, np.uint8),
+        np.ascontiguousarray(energy, dtype=np.float32),
+    )
     safe = np.maximum(count, 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_depth = np.where(n_depth > 0, depth_sum / np.maximum(n_depth, 1), np.nan)
@@ -342,8 +367,9 @@ def _sums(labels, n, image, depth, classes, energy):  # pragma: no cover - compi
     return count, color, depth_sum, n_depth, votes, energy_sum
 
 
-def min_cut(cost_unchanged: np.ndarray, cost_changed: np.ndarray, pairs: np.ndarray,
-            weights: np.ndarray) -> np.ndarray:
+def min_cut(
+    cost_unchanged: np.ndarray, cost_changed: np.ndarray, pairs: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
     """Minimise eq. 6 on a graph with PyMaxflow: ``Σ D_i(x_i) + Σ w_ij [x_i ≠ x_j]``.
 
     cost_unchanged, cost_changed : (n,) ``D_i(0)``, ``D_i(1)`` ≥ 0. pairs : (E, 2) node
@@ -356,8 +382,9 @@ def min_cut(cost_unchanged: np.ndarray, cost_changed: np.ndarray, pairs: np.ndar
     nodes = graph.add_nodes(n)
     # A node on the sink side (segment 1, "changed") cuts its source edge: that capacity is
     # the cost of being changed; the sink edge is cut for the source side ("unchanged").
-    graph.add_grid_tedges(nodes, np.asarray(cost_changed, np.float64),
-                          np.asarray(cost_unchanged, np.float64))
+    graph.add_grid_tedges(
+        nodes, np.asarray(cost_changed, np.float64), np.asarray(cost_unchanged, np.float64)
+    )
     if len(pairs):
         w = np.asarray(weights, np.float64)
         graph.add_edges(nodes[pairs[:, 0]], nodes[pairs[:, 1]], w, w)
@@ -396,9 +423,14 @@ class CutResult:
     stats: SuperpixelStats
 
 
-def cut_changes(energy: np.ndarray, image: np.ndarray, depth: np.ndarray, classes: np.ndarray,
-                params: GraphCutParams = _DEFAULTS,
-                labels: np.ndarray | None = None) -> CutResult:
+def cut_changes(
+    energy: np.ndarray,
+    image: np.ndarray,
+    depth: np.ndarray,
+    classes: np.ndarray,
+    params: GraphCutParams = _DEFAULTS,
+    labels: np.ndarray | None = None,
+) -> CutResult:
     """Graph cut of eq. 6 on class-aware superpixels, then the speckle filter.
 
     energy : (H, W) float32 node energy ``f`` in [0, 1] (:func:`node_energy`).
@@ -414,8 +446,15 @@ def cut_changes(energy: np.ndarray, image: np.ndarray, depth: np.ndarray, classe
     area = stats.count / (cell * cell)
     pairs, boundary = adjacency(labels)
     i, j = pairs[:, 0], pairs[:, 1]
-    sim = smoothness(stats.color[i], stats.color[j], stats.depth[i], stats.depth[j],
-                     stats.classes[i], stats.classes[j], params)
+    sim = smoothness(
+        stats.color[i],
+        stats.color[j],
+        stats.depth[i],
+        stats.depth[j],
+        stats.classes[i],
+        stats.classes[j],
+        params,
+    )
     weights = params.beta * sim * boundary / cell
     changed = min_cut(area * stats.energy, area * (1.0 - stats.energy), pairs, weights)
     mask = speckle_filter(changed[labels], speckle_min_px(w, params))

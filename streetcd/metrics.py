@@ -67,8 +67,9 @@ class PixelCounts:
     ntn: int = 0
 
     def __add__(self, other: PixelCounts) -> PixelCounts:
-        return PixelCounts(self.ntp + other.ntp, self.nfp + other.nfp,
-                           self.nfn + other.nfn, self.ntn + other.ntn)
+        return PixelCounts(
+            self.ntp + other.ntp, self.nfp + other.nfp, self.nfn + other.nfn, self.ntn + other.ntn
+        )
 
     @property
     def n(self) -> int:
@@ -122,8 +123,12 @@ class SegmentCounts:
     n_false: int = 0  # of those, on no change
 
     def __add__(self, other: SegmentCounts) -> SegmentCounts:
-        return SegmentCounts(self.n_truth + other.n_truth, self.n_good + other.n_good,
-                             self.n_detected + other.n_detected, self.n_false + other.n_false)
+        return SegmentCounts(
+            self.n_truth + other.n_truth,
+            self.n_good + other.n_good,
+            self.n_detected + other.n_detected,
+            self.n_false + other.n_false,
+        )
 
     @property
     def gdr(self) -> float:
@@ -161,24 +166,32 @@ def _bool_mask(a: np.ndarray, name: str, shape: tuple[int, ...] | None) -> np.nd
     return a.astype(bool, copy=False)
 
 
-def pixel_counts(detected: np.ndarray, truth: np.ndarray,
-                 dontcare: np.ndarray | None = None) -> PixelCounts:
+def pixel_counts(
+    detected: np.ndarray, truth: np.ndarray, dontcare: np.ndarray | None = None
+) -> PixelCounts:
     """Confusion counts of ``detected`` against ``truth`` over pixels not in ``dontcare``.
 
     detected, truth, dontcare : (H, W) bool or 0/255 uint8.
     """
     det = _bool_mask(detected, "detected", None)
     gt = _bool_mask(truth, "truth", det.shape)
-    care = (~_bool_mask(dontcare, "dontcare", det.shape) if dontcare is not None
-            else np.ones(det.shape, dtype=bool))
+    care = (
+        ~_bool_mask(dontcare, "dontcare", det.shape)
+        if dontcare is not None
+        else np.ones(det.shape, dtype=bool)
+    )
     d, g = det & care, gt & care
     ntp = int(np.count_nonzero(d & g))
     pd, pg, n = int(np.count_nonzero(d)), int(np.count_nonzero(g)), int(np.count_nonzero(care))
     return PixelCounts(ntp=ntp, nfp=pd - ntp, nfn=pg - ntp, ntn=n - pd - pg + ntp)
 
 
-def truth_coverage(detected: np.ndarray, instances: np.ndarray,
-                   dontcare: np.ndarray | None = None, min_truth_px: int = 50) -> dict[int, float]:
+def truth_coverage(
+    detected: np.ndarray,
+    instances: np.ndarray,
+    dontcare: np.ndarray | None = None,
+    min_truth_px: int = 50,
+) -> dict[int, float]:
     """Fraction of each ground-truth segment's cared-for pixels that the detection covers.
 
     instances : (H, W) integer, change-instance id per pixel, 0 = none.
@@ -189,20 +202,29 @@ def truth_coverage(detected: np.ndarray, instances: np.ndarray,
     inst = np.asarray(instances)
     if inst.shape != det.shape:
         raise InputError(f"instances has shape {inst.shape}, expected {det.shape}")
-    care = (~_bool_mask(dontcare, "dontcare", det.shape) if dontcare is not None
-            else np.ones(det.shape, dtype=bool))
+    care = (
+        ~_bool_mask(dontcare, "dontcare", det.shape)
+        if dontcare is not None
+        else np.ones(det.shape, dtype=bool)
+    )
     ids = inst[care].astype(np.int64)
     hits = det[care]
     total = np.bincount(ids)
     covered = np.bincount(ids[hits], minlength=total.size)
-    return {int(i): float(covered[i] / total[i]) for i in np.flatnonzero(total)
-            if i != 0 and total[i] >= max(min_truth_px, 1)}
+    return {
+        int(i): float(covered[i] / total[i])
+        for i in np.flatnonzero(total)
+        if i != 0 and total[i] >= max(min_truth_px, 1)
+    }
 
 
-def false_components(detected: np.ndarray, truth: np.ndarray,
-                     dontcare: np.ndarray | None = None, false_max_overlap: float = 0.1,
-                     class_raster: np.ndarray | None = None
-                     ) -> tuple[int, list[FalseDetection]]:
+def false_components(
+    detected: np.ndarray,
+    truth: np.ndarray,
+    dontcare: np.ndarray | None = None,
+    false_max_overlap: float = 0.1,
+    class_raster: np.ndarray | None = None,
+) -> tuple[int, list[FalseDetection]]:
     """Detected segments (8-connected components) and the false ones among them (§5 FDR).
 
     Returns (number of counted components, the false ones). ``class_raster`` (H, W) uint8,
@@ -210,8 +232,11 @@ def false_components(detected: np.ndarray, truth: np.ndarray,
     """
     det = _bool_mask(detected, "detected", None)
     gt = _bool_mask(truth, "truth", det.shape)
-    care = (~_bool_mask(dontcare, "dontcare", det.shape) if dontcare is not None
-            else np.ones(det.shape, dtype=bool))
+    care = (
+        ~_bool_mask(dontcare, "dontcare", det.shape)
+        if dontcare is not None
+        else np.ones(det.shape, dtype=bool)
+    )
     labels, n = ndimage.label(det, structure=_EIGHT)
     if n == 0:
         return 0, []
@@ -236,19 +261,29 @@ def false_components(detected: np.ndarray, truth: np.ndarray,
     return len(counted), [FalseDetection(int(size[c]), int(dominant[c])) for c in false]
 
 
-def score_view(detected: np.ndarray, truth: np.ndarray, instances: np.ndarray,
-               dontcare: np.ndarray | None = None, *, class_raster: np.ndarray | None = None,
-               min_cover: float = 0.5, min_truth_px: int = 50,
-               false_max_overlap: float = 0.1) -> ViewScore:
+def score_view(
+    detected: np.ndarray,
+    truth: np.ndarray,
+    instances: np.ndarray,
+    dontcare: np.ndarray | None = None,
+    *,
+    class_raster: np.ndarray | None = None,
+    min_cover: float = 0.5,
+    min_truth_px: int = 50,
+    false_max_overlap: float = 0.1,
+) -> ViewScore:
     """Pixel and segment counts of one view (see the module docstring for the definitions)."""
     if not 0 < min_cover <= 1:
         raise InputError(f"min_cover = {min_cover} must be in (0, 1]")
     pixels = pixel_counts(detected, truth, dontcare)
     cover = truth_coverage(detected, instances, dontcare, min_truth_px)
     n_comp, false = false_components(detected, truth, dontcare, false_max_overlap, class_raster)
-    segments = SegmentCounts(n_truth=len(cover),
-                             n_good=sum(c >= min_cover for c in cover.values()),
-                             n_detected=n_comp, n_false=len(false))
+    segments = SegmentCounts(
+        n_truth=len(cover),
+        n_good=sum(c >= min_cover for c in cover.values()),
+        n_detected=n_comp,
+        n_false=len(false),
+    )
     return ViewScore(pixels, segments, cover, tuple(false))
 
 
@@ -261,14 +296,19 @@ class Summary:
 
     def as_dict(self) -> dict[str, float | None]:
         """gdr, fdr, tp, fp in percent, kappa in [−1, 1]; undefined values as None."""
+
         def pct(x: float) -> float | None:
             return None if math.isnan(x) else 100.0 * x
 
         k = self.pixels.kappa
-        return {"gdr": pct(self.segments.gdr), "fdr": pct(self.segments.fdr),
-                "tp": pct(self.pixels.tp), "fp": pct(self.pixels.fp),
-                "kappa": None if math.isnan(k) else k,
-                "flagged": pct(self.pixels.flagged)}
+        return {
+            "gdr": pct(self.segments.gdr),
+            "fdr": pct(self.segments.fdr),
+            "tp": pct(self.pixels.tp),
+            "fp": pct(self.pixels.fp),
+            "kappa": None if math.isnan(k) else k,
+            "flagged": pct(self.pixels.flagged),
+        }
 
 
 def summarize(scores: Iterable[ViewScore]) -> Summary:
@@ -289,9 +329,12 @@ class TypeRow:
     nfdc: int = 0
 
 
-def per_type_table(objects: Sequence[Mapping], changes: Sequence[Mapping],
-                   scores: Sequence[ViewScore], min_cover: float = 0.5
-                   ) -> dict[str, TypeRow]:
+def per_type_table(
+    objects: Sequence[Mapping],
+    changes: Sequence[Mapping],
+    scores: Sequence[ViewScore],
+    min_cover: float = 0.5,
+) -> dict[str, TypeRow]:
     """Table 2 at scene level from the manifest's ``objects`` and ``changes`` (see module doc).
 
     objects : [{id, type, class, ...}], changes : [{instance_id, type, ...}].

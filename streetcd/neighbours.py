@@ -19,8 +19,9 @@ DEPTHS_M = (5.0, 10.0, 20.0, 40.0)  # street objects lie 10–30 m away (paper �
 GRID = 12  # sample rays per image side
 
 
-def frustum_samples(view: View, depths_m: Sequence[float] = DEPTHS_M, grid: int = GRID
-                    ) -> np.ndarray:
+def frustum_samples(
+    view: View, depths_m: Sequence[float] = DEPTHS_M, grid: int = GRID
+) -> np.ndarray:
     """(grid² · len(depths_m), 3) float64 points filling ``view``'s frustum, in the frame of
     ``view.pose`` (pass a view already moved to a local frame)."""
     intr = view.intrinsics
@@ -33,8 +34,9 @@ def frustum_samples(view: View, depths_m: Sequence[float] = DEPTHS_M, grid: int 
     return backproject(uv_all, depth, intr, view.pose)
 
 
-def overlap(view: View, other: View, depths_m: Sequence[float] = DEPTHS_M,
-            grid: int = GRID) -> float:
+def overlap(
+    view: View, other: View, depths_m: Sequence[float] = DEPTHS_M, grid: int = GRID
+) -> float:
     """Share in [0, 1] of ``view``'s frustum samples that ``other`` sees (in front, in image).
 
     Both views in the same frame (CRS is fine: computed relative to ``view``'s centre).
@@ -46,9 +48,14 @@ def overlap(view: View, other: View, depths_m: Sequence[float] = DEPTHS_M,
     return float(np.mean((depth > 0) & in_image(uv, q.intrinsics)))
 
 
-def select_neighbours(view: View, candidates: Sequence[View], n: int = 3, *,
-                      max_distance_m: float = 2 * DEPTHS_M[-1],
-                      depths_m: Sequence[float] = DEPTHS_M) -> list[View]:
+def select_neighbours(
+    view: View,
+    candidates: Sequence[View],
+    n: int = 3,
+    *,
+    max_distance_m: float = 2 * DEPTHS_M[-1],
+    depths_m: Sequence[float] = DEPTHS_M,
+) -> list[View]:
     """The ``n`` candidates whose frustum overlaps ``view``'s most (overlap > 0).
 
     ``view`` itself (same name) is never chosen; candidates farther than ``max_distance_m``

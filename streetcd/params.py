@@ -42,6 +42,10 @@ class ZBufferParams:
     tau: float = 0.5  # τ, support threshold on W(p)
     max_angle_deg: float = 45.0  # θ threshold of eq. 3
     scale_with_resolution: bool = False  # windows are point-density driven, not resolution
+    # s, metres: the cloud's widest point spacing (0.12 m: one scanner's profile spacing on the
+    # synthetic streets); > 0 widens w1 around near points to their projected spacing f·s/z
+    # (see streetcd.zbuffer); 0 keeps the paper's fixed w1
+    point_spacing_m: float = 0.12
 
     def __post_init__(self) -> None:
         _check(self.block_window_px >= 1, "block_window_px", self.block_window_px, ">= 1")
@@ -50,6 +54,12 @@ class ZBufferParams:
         _check(self.delta_color > 0, "delta_color", self.delta_color, "> 0")
         _check(0 < self.tau < 1, "tau", self.tau, "in (0, 1)")
         _check(0 < self.max_angle_deg < 90, "max_angle_deg", self.max_angle_deg, "in (0, 90)")
+        _check(
+            math.isfinite(self.point_spacing_m) and self.point_spacing_m >= 0,
+            "point_spacing_m",
+            self.point_spacing_m,
+            ">= 0",
+        )
 
 
 @dataclass(frozen=True)
@@ -80,12 +90,21 @@ class CorrelateParams:
     def __post_init__(self) -> None:
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")
         lo, hi = self.stretch_percentiles
-        _check(0 <= lo < hi <= 100, "stretch_percentiles", self.stretch_percentiles,
-               "0 <= lo < hi <= 100")
-        _check(0 <= self.low_class_weight <= 1, "low_class_weight", self.low_class_weight,
-               "in [0, 1]")
-        _check(self.registration_tolerance_px >= 0, "registration_tolerance_px",
-               self.registration_tolerance_px, ">= 0")
+        _check(
+            0 <= lo < hi <= 100,
+            "stretch_percentiles",
+            self.stretch_percentiles,
+            "0 <= lo < hi <= 100",
+        )
+        _check(
+            0 <= self.low_class_weight <= 1, "low_class_weight", self.low_class_weight, "in [0, 1]"
+        )
+        _check(
+            self.registration_tolerance_px >= 0,
+            "registration_tolerance_px",
+            self.registration_tolerance_px,
+            ">= 0",
+        )
 
 
 @dataclass(frozen=True)
@@ -110,8 +129,12 @@ class GraphCutParams:
         _check(self.a > 0, "a", self.a, "> 0")
         _check(self.beta >= 0, "beta", self.beta, ">= 0")
         _check(self.superpixel_cell_px >= 2, "superpixel_cell_px", self.superpixel_cell_px, ">= 2")
-        _check(self.superpixel_work_cell_px >= 2, "superpixel_work_cell_px",
-               self.superpixel_work_cell_px, ">= 2")
+        _check(
+            self.superpixel_work_cell_px >= 2,
+            "superpixel_work_cell_px",
+            self.superpixel_work_cell_px,
+            ">= 2",
+        )
         _check(self.compactness > 0, "compactness", self.compactness, "> 0")
         _check(self.class_penalty >= 0, "class_penalty", self.class_penalty, ">= 0")
         _check(self.color_scale > 0, "color_scale", self.color_scale, "> 0")
@@ -130,21 +153,30 @@ class DetectParams:
     max_range_m: float = 60.0  # points farther than this from the camera are ignored
 
     def __post_init__(self) -> None:
-        _check(math.isfinite(self.max_range_m) and self.max_range_m > 0, "max_range_m",
-               self.max_range_m, "a positive number")
+        _check(
+            math.isfinite(self.max_range_m) and self.max_range_m > 0,
+            "max_range_m",
+            self.max_range_m,
+            "a positive number",
+        )
 
 
 def _build(cls: type, values: dict[str, Any], where: str) -> Any:
     known = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - set(known))
     if unknown:
-        raise InputError(f"{where}: unknown parameter(s) {', '.join(unknown)} "
-                         f"(known: {', '.join(known)})")
+        raise InputError(
+            f"{where}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(known)})"
+        )
     kwargs = {}
     for name, value in values.items():
         sub = known[name].type
-        nested = {"ZBufferParams": ZBufferParams, "SurfaceParams": SurfaceParams,
-                  "CorrelateParams": CorrelateParams, "GraphCutParams": GraphCutParams}
+        nested = {
+            "ZBufferParams": ZBufferParams,
+            "SurfaceParams": SurfaceParams,
+            "CorrelateParams": CorrelateParams,
+            "GraphCutParams": GraphCutParams,
+        }
         if isinstance(sub, str) and sub in nested and isinstance(value, dict):
             value = _build(nested[sub], value, f"{where}.{name}")
         elif isinstance(value, list):
@@ -160,6 +192,7 @@ def params_from_dict(values: dict[str, Any], where: str = "params") -> DetectPar
 
 def params_to_dict(params: DetectParams) -> dict[str, Any]:
     """Nested plain dict of ``params`` (tuples as lists), the inverse of params_from_dict."""
+
     def plain(x: Any) -> Any:
         if isinstance(x, tuple):
             return [plain(v) for v in x]

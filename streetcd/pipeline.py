@@ -40,6 +40,7 @@ import numpy as np
 
 from streetcd.errors import CorruptFileError, CRSMismatchError, InputError, MissingInputError
 from streetcd.index import ChangeIndex, RegionRecord, ViewRecord
+from streetcd.io.las import PointCloud
 from streetcd.params import DetectParams, params_to_dict
 from streetcd.segments import Segment, SegmentParams, plan_segments
 from streetcd.views import View
@@ -466,10 +467,31 @@ def detect_batch(batch: Batch) -> list[ViewRecord]:
     cloud, reads the images, writes masks under ``out/masks/<segment>/`` atomically.
     """
     store = _open_store(batch.store)
-    return [_detect_one(batch, task, store) for task in batch.tasks]
+    cloud = _batch_cloud(batch, store)
+    return [_detect_one(batch, task, store, cloud) for task in batch.tasks]
 
 
-def _detect_one(batch: Batch, task: ViewTask, store: Any) -> ViewRecord:
+def _batch_cloud(batch: Batch, store: Any) -> PointCloud | None:
+    """One crop for all views of the batch (and their neighbours), or None if it fails.
+
+    Sharing one cloud object lets the detector's surface cache build each view's surface
+    once, though it serves as the view and as a neighbour of up to three others. On failure
+    each view crops on its own, so the error is recorded against the views it concerns.
+    """
+    from streetcd.crop import crop_for_views
+
+    views = {t.view.name: t.view for t in batch.tasks}
+    views.update({n.name: n for t in batch.tasks for n in t.neighbours})
+    try:
+        return crop_for_views(
+            store, list(views.values()), max_range_m=batch.params.detect.max_range_m
+        )
+    except Exception as exc:  # recorded per view by _detect_one's own crop
+        log.warning("batch %s: shared crop failed, cropping per view: %s", batch.key, exc)
+        return None
+
+
+def _detect_one(batch: Batch, task: ViewTask, store: Any, shared: PointCloud | None) -> ViewRecord:
     from streetcd.crop import crop_for_view
     from streetcd.detect import detect_view
 
@@ -490,7 +512,11 @@ def _detect_one(batch: Batch, task: ViewTask, store: Any) -> ViewRecord:
                 neighbours.append((_images.get(n), n))
             except (InputError, MissingInputError) as exc:
                 log.warning("view %s: neighbour %s left out: %s", view.name, n.name, exc)
-        cloud = crop_for_view(store, view, max_range_m=p.detect.max_range_m)
+        cloud = (
+            shared
+            if shared is not None
+            else crop_for_view(store, view, max_range_m=p.detect.max_range_m)
+        )
         t1 = time.perf_counter()
         result = detect_view(image, view, neighbours, cloud, p.detect)
         t2 = time.perf_counter()

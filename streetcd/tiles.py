@@ -167,20 +167,34 @@ class TileInfo:
         return [f.source for f in self.fragments]
 
     def to_json(self) -> dict[str, Any]:
-        return {"id": self.id, "i": self.i, "j": self.j, "bounds": list(self.bounds),
-                "box": list(self.box), "count": self.count,
-                "classes": {str(k): v for k, v in sorted(self.classes.items())},
-                "sources": self.sources}
+        return {
+            "id": self.id,
+            "i": self.i,
+            "j": self.j,
+            "bounds": list(self.bounds),
+            "box": list(self.box),
+            "count": self.count,
+            "classes": {str(k): v for k, v in sorted(self.classes.items())},
+            "sources": self.sources,
+        }
 
 
 def tile_id(i: int, j: int) -> str:
     return f"{i}_{j}"
 
 
-def _empty_index(tile_size_m: float, scale_m: float, origin: np.ndarray,
-                 crs: str | None) -> dict[str, Any]:
-    return {"format": FORMAT, "tile_size_m": tile_size_m, "scale_m": scale_m,
-            "origin": [float(v) for v in origin], "crs": crs, "files": {}, "tiles": {}}
+def _empty_index(
+    tile_size_m: float, scale_m: float, origin: np.ndarray, crs: str | None
+) -> dict[str, Any]:
+    return {
+        "format": FORMAT,
+        "tile_size_m": tile_size_m,
+        "scale_m": scale_m,
+        "origin": [float(v) for v in origin],
+        "crs": crs,
+        "files": {},
+        "tiles": {},
+    }
 
 
 def _aggregate(fragments: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -192,8 +206,11 @@ def _aggregate(fragments: dict[str, dict[str, Any]]) -> dict[str, Any]:
     for f in fragments.values():
         for k, n in f["classes"].items():
             classes[k] = classes.get(k, 0) + n
-    return {"count": count, "bounds": [*map(float, lo), *map(float, hi)],
-            "classes": dict(sorted(classes.items(), key=lambda kv: int(kv[0])))}
+    return {
+        "count": count,
+        "bounds": [*map(float, lo), *map(float, hi)],
+        "classes": dict(sorted(classes.items(), key=lambda kv: int(kv[0]))),
+    }
 
 
 # --- the process-wide tile cache ---------------------------------------------------------
@@ -265,8 +282,9 @@ class TileStore:
         self.scale_m = float(index["scale_m"])
         self.origin = np.asarray(index["origin"], dtype=np.float64)
         self.crs: str | None = index["crs"]
-        self.tiles: dict[str, TileInfo] = {tid: self._info(tid, t)
-                                           for tid, t in index["tiles"].items()}
+        self.tiles: dict[str, TileInfo] = {
+            tid: self._info(tid, t) for tid, t in index["tiles"].items()
+        }
         # (i, j) → tile: the tiles are a regular grid, so a bbox lookup touches only its cells.
         self._grid = {(t.i, t.j): t for t in self.tiles.values()}
 
@@ -280,11 +298,22 @@ class TileStore:
 
     def _info(self, tid: str, t: dict[str, Any]) -> TileInfo:
         ts = self.tile_size_m
-        frags = tuple(sorted((Fragment(k, f["source"], f["count"])
-                              for k, f in t["fragments"].items()), key=lambda f: f.source))
-        return TileInfo(tid, t["i"], t["j"], t["count"], tuple(t["bounds"]),
-                        (t["i"] * ts, t["j"] * ts, (t["i"] + 1) * ts, (t["j"] + 1) * ts),
-                        {int(k): v for k, v in t["classes"].items()}, frags)
+        frags = tuple(
+            sorted(
+                (Fragment(k, f["source"], f["count"]) for k, f in t["fragments"].items()),
+                key=lambda f: f.source,
+            )
+        )
+        return TileInfo(
+            tid,
+            t["i"],
+            t["j"],
+            t["count"],
+            tuple(t["bounds"]),
+            (t["i"] * ts, t["j"] * ts, (t["i"] + 1) * ts, (t["j"] + 1) * ts),
+            {int(k): v for k, v in t["classes"].items()},
+            frags,
+        )
 
     def __len__(self) -> int:
         return len(self.tiles)
@@ -305,8 +334,9 @@ class TileStore:
         i0, i1 = math.floor(minx / ts), math.floor(maxx / ts)
         j0, j1 = math.floor(miny / ts), math.floor(maxy / ts)
         if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._grid):
-            return [t for (i, j), t in sorted(self._grid.items())
-                    if i0 <= i <= i1 and j0 <= j <= j1]
+            return [
+                t for (i, j), t in sorted(self._grid.items()) if i0 <= i <= i1 and j0 <= j <= j1
+            ]
         cells = ((i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1))
         return [self._grid[c] for c in cells if c in self._grid]
 
@@ -337,18 +367,30 @@ class TileStore:
         cat = {n: np.concatenate([p[n] for p in parts]) for n in names}
         corner = np.array([info.i * self.tile_size_m, info.j * self.tile_size_m, 0.0])
         xyz = cat["xyz"] * self.scale_m + (corner - self.origin)  # float64, local
-        return PointCloud(xyz=xyz, origin=self.origin, classification=cat["classification"],
-                          intensity=cat.get("intensity"), rgb=cat.get("rgb"),
-                          gps_time=cat.get("gps_time"), crs=self.crs)
+        return PointCloud(
+            xyz=xyz,
+            origin=self.origin,
+            classification=cat["classification"],
+            intensity=cat.get("intensity"),
+            rgb=cat.get("rgb"),
+            gps_time=cat.get("gps_time"),
+            crs=self.crs,
+        )
 
     def to_json(self) -> dict[str, Any]:
         """The index as plain JSON: store settings, ``tiles`` (id, bounds, count, classes,
         sources) and ``files``."""
-        return {"store": str(self.path), "format": FORMAT, "crs": self.crs,
-                "origin": self.origin.tolist(), "tile_size_m": self.tile_size_m,
-                "scale_m": self.scale_m, "point_count": self.point_count,
-                "tiles": [self.tiles[k].to_json() for k in sorted(self.tiles, key=_tile_order)],
-                "files": self.files}
+        return {
+            "store": str(self.path),
+            "format": FORMAT,
+            "crs": self.crs,
+            "origin": self.origin.tolist(),
+            "tile_size_m": self.tile_size_m,
+            "scale_m": self.scale_m,
+            "point_count": self.point_count,
+            "tiles": [self.tiles[k].to_json() for k in sorted(self.tiles, key=_tile_order)],
+            "files": self.files,
+        }
 
 
 def _tile_order(tid: str) -> tuple[int, int]:
@@ -403,16 +445,18 @@ class _FileDone:
     tiles: dict[str, dict[str, Any]]  # tile id → {i, j, count, bounds (CRS), classes}
 
 
-def _split_by_tile(cloud: PointCloud, ts: float, scale: float,
-                   path: str) -> Iterator[tuple[tuple[int, int], dict[str, np.ndarray]]]:
+def _split_by_tile(
+    cloud: PointCloud, ts: float, scale: float, path: str
+) -> Iterator[tuple[tuple[int, int], dict[str, np.ndarray]]]:
     """Bin one chunk (CRS coordinates) into tiles: ((i, j), fields) with xyz quantised to
     int32 relative to the tile corner."""
     xyz = cloud.xyz
     ij = np.floor(xyz[:, :2] / ts).astype(np.int64)
     zmax = np.abs(xyz[:, 2]).max()
     if zmax / scale >= _INT32_MAX:
-        raise InputError(f"{path}: field 'Z' out of range for the store scale {scale} m "
-                         f"(|z| up to {zmax:.1f} m)")
+        raise InputError(
+            f"{path}: field 'Z' out of range for the store scale {scale} m (|z| up to {zmax:.1f} m)"
+        )
     q = np.empty(xyz.shape, dtype=np.int32)
     q[:, :2] = np.rint((xyz[:, :2] - ij * ts) / scale)  # 0 … tile/scale: fits int32
     q[:, 2] = np.rint(xyz[:, 2] / scale)
@@ -442,8 +486,9 @@ def _flush(acc: _TileAccumulator, path: Path, n: int, final: bool = False) -> No
         rows = n if final and n < FRAGMENT_CHUNK_POINTS else FRAGMENT_CHUNK_POINTS
         group = zarr.open_group(str(path), mode="w")
         for k, a in data.items():
-            acc.arrays[k] = group.create_array(k, data=a[:n], compressors=_COMPRESSOR,
-                                               chunks=(rows, *a.shape[1:]))
+            acc.arrays[k] = group.create_array(
+                k, data=a[:n], compressors=_COMPRESSOR, chunks=(rows, *a.shape[1:])
+            )
     else:
         for k, a in data.items():
             acc.arrays[k].append(a[:n])
@@ -500,9 +545,13 @@ def _ingest_file(task: _FileTask, report: Callable[[str, int], None] | None = No
         corner = np.array([i * task.tile_size_m, j * task.tile_size_m, 0.0])
         lo, hi = corner + acc.lo * task.scale_m, corner + acc.hi * task.scale_m
         out[tile_id(i, j)] = {
-            "i": i, "j": j, "count": acc.count, "source": task.path,
+            "i": i,
+            "j": j,
+            "count": acc.count,
+            "source": task.path,
             "bounds": [*map(float, lo), *map(float, hi)],
-            "classes": {str(c): int(acc.classes[c]) for c in np.flatnonzero(acc.classes)}}
+            "classes": {str(c): int(acc.classes[c]) for c in np.flatnonzero(acc.classes)},
+        }
     return _FileDone(task.path, task.key, total, out)
 
 
@@ -601,16 +650,22 @@ class _Store:
             tiles[tid]["fragments"].pop(stale, None)
         for tid, stats in done.tiles.items():
             t = tiles.setdefault(tid, {"i": stats["i"], "j": stats["j"], "fragments": {}})
-            t["fragments"][done.key] = {k: stats[k] for k in ("count", "bounds", "classes",
-                                                              "source")}
+            t["fragments"][done.key] = {
+                k: stats[k] for k in ("count", "bounds", "classes", "source")
+            }
         for tid in set(done.tiles) | set(old.get("tiles", [])):
             if tiles.get(tid, {}).get("fragments"):
                 tiles[tid].update(_aggregate(tiles[tid]["fragments"]))
             else:
                 tiles.pop(tid, None)
-        files[done.path] = {"status": "done", "key": done.key, "size": size,
-                            "mtime_ns": mtime_ns, "points": done.points,
-                            "tiles": sorted(done.tiles, key=_tile_order)}
+        files[done.path] = {
+            "status": "done",
+            "key": done.key,
+            "size": size,
+            "mtime_ns": mtime_ns,
+            "points": done.points,
+            "tiles": sorted(done.tiles, key=_tile_order),
+        }
         self.write_index()  # the commit point
         shutil.rmtree(self.path / "_staging" / done.key, ignore_errors=True)
         for tid in old.get("tiles", []) if stale else []:
@@ -623,8 +678,13 @@ class _Store:
         ``key`` and ``tiles`` are kept so that a later good version replaces it)."""
         old = self.index["files"].get(path, {})
         rec = {k: old[k] for k in ("key", "points", "tiles") if k in old}
-        rec.update(status="failed", error=str(exc), error_type=type(exc).__name__, size=size,
-                   mtime_ns=mtime_ns)
+        rec.update(
+            status="failed",
+            error=str(exc),
+            error_type=type(exc).__name__,
+            size=size,
+            mtime_ns=mtime_ns,
+        )
         if old != rec:
             self.index["files"][path] = rec
             self.write_index()
@@ -660,8 +720,10 @@ def ingest(
     files = find_archive_files(archive)
     index = read_index(path)
     if index is not None and (index["tile_size_m"] != tile_size_m or index["scale_m"] != scale_m):
-        raise InputError(f"{path}: store has tile_size_m={index['tile_size_m']}, "
-                         f"scale_m={index['scale_m']}; asked for {tile_size_m}, {scale_m}")
+        raise InputError(
+            f"{path}: store has tile_size_m={index['tile_size_m']}, "
+            f"scale_m={index['scale_m']}; asked for {tile_size_m}, {scale_m}"
+        )
 
     failed: dict[str, StreetcdError] = {}
     stats: dict[str, tuple[int, int]] = {}
@@ -686,13 +748,15 @@ def ingest(
     for fp, info in todo:
         if info.crs != crs:
             failed[fp] = CRSMismatchError(
-                f"{fp}: field 'CRS' is {info.crs}, but the store {path.name} is in {crs}")
+                f"{fp}: field 'CRS' is {info.crs}, but the store {path.name} is in {crs}"
+            )
     todo = [(fp, info) for fp, info in todo if fp not in failed]
 
     if index is None:
         if path.exists() and any(path.iterdir()):
-            raise InputError(f"{path}: exists and is not a streetcd tile store; "
-                             "choose a new path for --store")
+            raise InputError(
+                f"{path}: exists and is not a streetcd tile store; choose a new path for --store"
+            )
         index = _empty_index(tile_size_m, scale_m, _store_origin([i for _, i in todo]), crs)
         writer = _Store.create(path, index)
     else:
@@ -711,9 +775,19 @@ def ingest(
         if progress is not None:
             progress(done_points, total, Path(p).name)
 
-    tasks = [_FileTask(f, _file_key(Path(f), *stats[f]), str(path / "_staging" /
-                       _file_key(Path(f), *stats[f])), tile_size_m, scale_m, chunk_points,
-                       buffer_points, reader) for f, _ in todo]
+    tasks = [
+        _FileTask(
+            f,
+            _file_key(Path(f), *stats[f]),
+            str(path / "_staging" / _file_key(Path(f), *stats[f])),
+            tile_size_m,
+            scale_m,
+            chunk_points,
+            buffer_points,
+            reader,
+        )
+        for f, _ in todo
+    ]
     if todo:
         zarr.open_group(str(path / "_staging"), mode="w")
 
@@ -736,18 +810,30 @@ def ingest(
     shutil.rmtree(path / "_staging", ignore_errors=True)
     points = sum(index["files"][f]["points"] for f in ingested)
     messages = {f: str(failed[f]) for f in sorted(failed)}
-    return IngestResult(path, tuple(ingested), tuple(skipped), messages,
-                        points, len(index["tiles"]), time.perf_counter() - t0)
+    return IngestResult(
+        path,
+        tuple(ingested),
+        tuple(skipped),
+        messages,
+        points,
+        len(index["tiles"]),
+        time.perf_counter() - t0,
+    )
 
 
-def _run_pool(tasks: list[_FileTask], workers: int, report: Callable[[str, int], None],
-              finish: Callable[[_FileTask, Callable[[], _FileDone]], None]) -> None:
+def _run_pool(
+    tasks: list[_FileTask],
+    workers: int,
+    report: Callable[[str, int], None],
+    finish: Callable[[_FileTask, Callable[[], _FileDone]], None],
+) -> None:
     """Files on a process pool (spawned: zarr keeps an event-loop thread that fork would
     copy mid-flight); chunk progress comes back through a queue."""
     ctx = multiprocessing.get_context("spawn")
     q = ctx.Queue()
-    with ProcessPoolExecutor(min(workers, len(tasks)), mp_context=ctx,
-                             initializer=_init_worker, initargs=(q,)) as pool:
+    with ProcessPoolExecutor(
+        min(workers, len(tasks)), mp_context=ctx, initializer=_init_worker, initargs=(q,)
+    ) as pool:
         futures: dict[Future, _FileTask] = {pool.submit(_ingest_file, t): t for t in tasks}
         pending = set(futures)
         try:

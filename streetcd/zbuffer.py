@@ -43,6 +43,16 @@ Choices the paper leaves open, made here:
   window then holds the nearer points on one side only.
 * All centres are tested against the same BWZB set (erasures do not cascade), so the result
   does not depend on the order of the points.
+* **Adaptive window** (``ZBufferParams.point_spacing_m`` = s > 0, with ``focal_px``): the paper
+  asks w1 to "cover at least one front-face point", but a fixed w1 cannot for near objects:
+  a street-light pole 1–2 m from the camera, scanned in profiles up to 0.12 m apart, projects its
+  points 40–100 px apart, and the wall behind it stays visible through the interspaces. So
+  a neighbour i counts within ``r_i = max(w1 / 2, f · s / z_i)`` px of the centre (its own
+  projected spacing), and its Δd in eq. 2 is taken in units of ``r_i / (w1 / 2)`` (close
+  relative to its spacing). The tests of eq. 3 are unchanged; the wide reach matters only
+  through the metric test, so a wall point is erased only where the near points surround
+  it. s = 0 gives the paper's fixed window. On the synthetic streets s = 0.12 m (the
+  scanner's profile spacing) cut the false positives by 5–10 points (docs/TUNING.md).
 """
 
 from __future__ import annotations
@@ -273,9 +283,62 @@ def block_zbuffer(
 # --- weighted-window z-buffer, eq. 2–3 ---------------------------------------------------
 
 
+_TILE_CELLS = 8  # tiles of 8 × 8 block cells bound the search radius of the adaptive window
+
+
+@numba.njit(cache=True, nogil=True)
+def _search_radius(cells, depth, gh, gw, window, half, reach_scale):  # pragma: no cover - compiled
+    """(gh·gw,) int64 search radius in pixels per block cell for the adaptive window.
+
+    A point i reaches ``r_i = max(half, reach_scale / z_i)`` px. Every centre within r_i of
+    some point i must search at least that far: per tile of ``_TILE_CELLS²`` cells the largest
+    reach is spread to the tiles it can touch. ``reach_scale = 0`` gives ``half`` everywhere.
+    """
+    radius = np.full(gh * gw, half, dtype=np.int64)
+    if reach_scale <= 0.0:
+        return radius
+    th = (gh + _TILE_CELLS - 1) // _TILE_CELLS
+    tw = (gw + _TILE_CELLS - 1) // _TILE_CELLS
+    tile_reach = np.zeros(th * tw, dtype=np.float64)
+    for cell in range(cells.shape[0]):
+        c = cells[cell]
+        if c >= 0:
+            t = ((cell // gw) // _TILE_CELLS) * tw + (cell % gw) // _TILE_CELLS
+            tile_reach[t] = max(tile_reach[t], reach_scale / depth[c])
+    tile_radius = np.zeros(th * tw, dtype=np.float64)
+    tile_px = float(_TILE_CELLS * window)
+    for t in range(th * tw):
+        r = tile_reach[t]
+        if r <= half:
+            continue
+        k = int(r // tile_px) + 1
+        ty, tx = t // tw, t % tw
+        for y in range(max(ty - k, 0), min(ty + k + 1, th)):
+            for x in range(max(tx - k, 0), min(tx + k + 1, tw)):
+                tile_radius[y * tw + x] = max(tile_radius[y * tw + x], r)
+    for cell in range(cells.shape[0]):
+        r = tile_radius[((cell // gw) // _TILE_CELLS) * tw + (cell % gw) // _TILE_CELLS]
+        if r > half:
+            radius[cell] = int(math.ceil(r)) + 1  # +1: pixel of u vs u itself
+    return radius
+
+
 @numba.njit(cache=True, nogil=True)
 def _weighted_erase(
-    cells, uv, depth, image, window, half, gamma, delta, max_log_w, tan_theta, focal, surround
+    cells,
+    uv,
+    depth,
+    image,
+    window,
+    half,
+    gamma,
+    delta,
+    max_log_w,
+    tan_theta,
+    focal,
+    surround,
+    reach_scale,
+    radius,
 ):  # pragma: no cover - compiled
     """Erase flags for the BWZB points ``cells`` (see :func:`weighted_zbuffer`).
 
@@ -283,12 +346,16 @@ def _weighted_erase(
     True where the cell's point is a back-face point by eq. 2–3 with offsets in pixels, or,
     when ``surround``, by the metric reading (offsets px · z_i / ``focal``) with steep
     supporters that surround the centre (no half-plane through it holds them all).
+    A neighbour i counts within ``r_i = max(half, reach_scale / z_i)`` px of the centre
+    (``reach_scale = 0``: the fixed ``half``), and its Δd of eq. 2 is taken in units of
+    ``r_i / half``; ``radius`` (gh·gw,) int64 is the search radius per cell
+    (:func:`_search_radius`).
     """
     height, width = image.shape[0], image.shape[1]
     gw = (width + window - 1) // window
     gh = (height + window - 1) // window
     erase = np.zeros(cells.shape[0], dtype=np.bool_)
-    side = (2 * half) // window + 2
+    side = (2 * radius.max()) // window + 2
     angles = np.empty(side * side, dtype=np.float64)  # directions of the steep supporters
     for cell in range(cells.shape[0]):
         c = cells[cell]
@@ -299,13 +366,16 @@ def _weighted_erase(
         zc = depth[c]
         colc = int(math.floor(uc + 0.5))
         rowc = int(math.floor(vc + 0.5))
+        search = radius[cell]
         r0 = float(image[rowc, colc, 0])
         g0 = float(image[rowc, colc, 1])
         b0 = float(image[rowc, colc, 2])
         n = 0
-        # a neighbour within `half` px of u_c lies in pixel columns colc ± half
-        for ny in range(max(rowc - half, 0) // window, min((rowc + half) // window + 1, gh)):
-            for nx in range(max(colc - half, 0) // window, min((colc + half) // window + 1, gw)):
+        # a neighbour within `search` px of u_c lies in pixel columns colc ± search
+        y0, y1 = max(rowc - search, 0) // window, min((rowc + search) // window + 1, gh)
+        x0, x1 = max(colc - search, 0) // window, min((colc + search) // window + 1, gw)
+        for ny in range(y0, y1):
+            for nx in range(x0, x1):
                 i = cells[ny * gw + nx]
                 if i < 0 or i == c:
                     continue
@@ -314,7 +384,8 @@ def _weighted_erase(
                     continue
                 du = uv[i, 0] - uc
                 dv = uv[i, 1] - vc
-                if abs(du) > half or abs(dv) > half:
+                reach = half if reach_scale <= 0.0 else max(half, reach_scale / depth[i])
+                if abs(du) > reach or abs(dv) > reach:
                     continue
                 dd = math.sqrt(du * du + dv * dv)
                 coli = int(math.floor(uv[i, 0] + 0.5))
@@ -324,7 +395,9 @@ def _weighted_erase(
                 db = float(image[rowi, coli, 2]) - b0
                 dc = math.sqrt(dr * dr + dg * dg + db * db)
                 # eq. 2: W = exp(−(Δd/γ + Δc/δ)) > τ  ⇔  Δd/γ + Δc/δ < −ln τ
-                if dd / gamma + dc / delta >= max_log_w:
+                # Δd in units of the neighbour's reach: as close relative to its spacing
+                shrink = 1.0 if reach <= half else half / reach
+                if dd * shrink / gamma + dc / delta >= max_log_w:
                     continue
                 # eq. 3 as written, offsets in pixels: arctan(dz / dd) > θ  ⇔  dz > tan θ · dd
                 if dz > tan_theta * dd:
@@ -370,7 +443,9 @@ def weighted_zbuffer(
     focal_px : the camera's focal length in pixels. None runs eq. 3 as the paper writes it
         (offsets in pixels, any steep supporter erases); a value adds the metric test
         (offsets in metres, steep supporters must surround the centre), so it erases a
-        superset. See the module docstring.
+        superset, and turns on the adaptive window when ``params.point_spacing_m > 0``
+        (neighbour i reaches ``max(w1 / 2, focal_px · s / z_i)`` px). See the module
+        docstring.
 
     Returns
     -------
@@ -388,18 +463,25 @@ def weighted_zbuffer(
     h, w = image.shape[:2]
     window = int(params.block_window_px)
     cells = _block_cells(uv, depth, h, w, window)
+    half = int(params.weighted_window_px) // 2
+    # the adaptive window needs the focal length to turn metres into pixels
+    reach_scale = 0.0 if focal_px is None else float(focal_px) * float(params.point_spacing_m)
+    gw, gh = (w + window - 1) // window, (h + window - 1) // window
+    radius = _search_radius(cells, depth, gh, gw, window, half, reach_scale)
     erase = _weighted_erase(
         cells,
         uv,
         depth,
         image,
         window,
-        int(params.weighted_window_px) // 2,
+        half,
         float(params.gamma_px),
         float(params.delta_color),
         -math.log(params.tau),
         math.tan(math.radians(params.max_angle_deg)),
         0.0 if focal_px is None else float(focal_px),
         focal_px is not None,
+        reach_scale,
+        radius,
     )
     return _sorted_indices(np.where(erase, -1, cells), depth.shape[0])

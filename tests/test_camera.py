@@ -91,7 +91,9 @@ def test_scaled_intrinsics_match_opencv_resize_pixel_centres():
     assert small.cx == pytest.approx((960 - 1) / 2)
 
 
-@pytest.mark.parametrize("q", [[1, 0, 0, 0], [0.5, 0.5, -0.5, 0.5], [0.1, 0.9, 0.3, -0.2], [0, 0, 0, 1]])
+@pytest.mark.parametrize(
+    "q", [[1, 0, 0, 0], [0.5, 0.5, -0.5, 0.5], [0.1, 0.9, 0.3, -0.2], [0, 0, 0, 1]]
+)
 def test_quaternion_round_trip(q):
     q = np.asarray(q, float) / np.linalg.norm(q)
     R = quaternion_to_rotation(q)

@@ -107,8 +107,14 @@ def test_new_object_in_the_image_gives_raw_change_there():
     image, depth = render_wall(wall_pose(0.0))
     image[40:80, 60:100] = [200, 40, 200]  # a board not in the cloud (nor in q's image)
     cls = np.full(depth.shape, classes.BUILDING, np.uint8)
-    change, _ = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
-                           [neighbour(-0.6), neighbour(0.6)])
+    change, _ = raw_change(
+        stretch_histogram(image),
+        depth,
+        cls,
+        INTR,
+        wall_pose(0.0),
+        [neighbour(-0.6), neighbour(0.6)],
+    )
     assert np.mean(change[42:78, 62:98] > 0.24) > 0.9
     outside = np.ones(depth.shape, bool)
     outside[38:82, 58:102] = False
@@ -142,8 +148,14 @@ def test_occluded_pixels_give_no_evidence():
     q_depth = nb.depth.copy()
     q_depth[:, :80] = 3.0  # q sees something 7 m closer over its left half
     inverted = 255 - nb.image  # and would disagree everywhere
-    change, support = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
-                                 [Neighbour(inverted, q_depth, INTR, nb.pose)])
+    change, support = raw_change(
+        stretch_histogram(image),
+        depth,
+        cls,
+        INTR,
+        wall_pose(0.0),
+        [Neighbour(inverted, q_depth, INTR, nb.pose)],
+    )
     mu, _, _ = reproject(depth, camera_rays(INTR), wall_pose(0.0), INTR, nb.pose)
     hidden = np.round(mu) < 80
     assert np.all(support[hidden] == 0) and np.all(change[hidden] == 0)
@@ -156,8 +168,9 @@ def test_pixels_without_surface_or_neighbours_get_zero():
     cls = np.full(depth.shape, classes.BUILDING, np.uint8)
     inverted = neighbour(0.6)
     inverted = Neighbour(255 - inverted.image, inverted.depth, INTR, inverted.pose)
-    change, support = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
-                                 [inverted])
+    change, support = raw_change(
+        stretch_histogram(image), depth, cls, INTR, wall_pose(0.0), [inverted]
+    )
     assert np.all(change[:20] == 0) and np.all(support[:20] == 0)
     change, support = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0), [])
     assert not change.any() and not support.any()
@@ -172,10 +185,18 @@ def test_tree_and_road_pixels_are_down_weighted(weight):
     inverted = neighbour(0.0)
     inverted = Neighbour(255 - inverted.image, inverted.depth, INTR, inverted.pose)
     params = CorrelateParams(low_class_weight=weight)
-    change, _ = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0),
-                           [inverted], params)
-    full, _ = raw_change(stretch_histogram(image), depth, cls, INTR, wall_pose(0.0), [inverted],
-                         CorrelateParams(low_class_weight=1.0))
+    change, _ = raw_change(
+        stretch_histogram(image), depth, cls, INTR, wall_pose(0.0), [inverted], params
+    )
+    full, _ = raw_change(
+        stretch_histogram(image),
+        depth,
+        cls,
+        INTR,
+        wall_pose(0.0),
+        [inverted],
+        CorrelateParams(low_class_weight=1.0),
+    )
     assert np.allclose(change[:, :60], weight * full[:, :60], atol=1e-6)
     assert np.array_equal(change[:, 60:], full[:, 60:])
 
@@ -196,8 +217,13 @@ def test_fused_kernel_matches_the_remap_reference_with_distortion_and_occlusion(
     change, support = raw_change(stretched, depth, cls, INTR, wall_pose(0.0), [nb])
     warped, valid = warp_neighbour(nb, depth, camera_rays(INTR), wall_pose(0.0), 0.3)
     reference = np.where(valid, color_distance(stretched, warped), 0.0)
-    edge = np.abs(np.round(reproject(depth, camera_rays(INTR), wall_pose(0.0), distorted,
-                                     pose_q)[0]) - 29.5) < 1.5  # nearest-pixel ties at the occluder
+    edge = (
+        np.abs(
+            np.round(reproject(depth, camera_rays(INTR), wall_pose(0.0), distorted, pose_q)[0])
+            - 29.5
+        )
+        < 1.5
+    )  # nearest-pixel ties at the occluder
     assert np.array_equal(support[~edge] == 1, valid[~edge])
     assert valid.mean() > 0.5 and not valid[:10].any()
     # cv2.remap quantises its interpolation weights to 1/32 px

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from streetcd.camera import Intrinsics, look_at
-from streetcd.crop import convex_hull_2d, crop_for_view, in_frustum, view_footprint
+from streetcd.crop import (
+    convex_hull_2d,
+    crop_for_view,
+    crop_for_views,
+    in_frustum,
+    view_footprint,
+)
 from streetcd.errors import CRSMismatchError, InputError
 from streetcd.io.las import read_las, write_las
 from streetcd.tiles import TILE_CACHE, TileStore, ingest
@@ -14,14 +20,14 @@ from streetcd.views import View
 
 ORIGIN = np.array([421_000.0, 5_632_000.0, 0.0])  # CRS metres
 INTR = Intrinsics(width=64, height=48, fx=40.0, fy=40.0, cx=31.5, cy=23.5)
-DISTORTED = Intrinsics(width=64, height=48, fx=40.0, fy=40.0, cx=30.0, cy=25.0,
-                       dist=(-0.2, 0.05, 0.001, -0.001, 0.0))
+DISTORTED = Intrinsics(
+    width=64, height=48, fx=40.0, fy=40.0, cx=30.0, cy=25.0, dist=(-0.2, 0.05, 0.001, -0.001, 0.0)
+)
 
 
 def view_at(center, target, intrinsics=INTR, name="v") -> View:
     """A view in CRS coordinates; ``center``/``target`` are given local to ORIGIN."""
-    return View(name, intrinsics, look_at(np.asarray(center) + ORIGIN,
-                                          np.asarray(target) + ORIGIN))
+    return View(name, intrinsics, look_at(np.asarray(center) + ORIGIN, np.asarray(target) + ORIGIN))
 
 
 @pytest.fixture(scope="module")
@@ -36,13 +42,24 @@ def scene(tmp_path_factory):
         xyz = rng.uniform([k * 25.0, 0.0, 0.0], [k * 25.0 + 40.0, 60.0, 15.0], (n, 3))
         xyz = np.round(xyz, 3)  # on the 1 mm grid, so write → read is exact
         ids = np.arange(k * n, (k + 1) * n, dtype=np.float64)
-        files.append(write_las(root / "archive" / f"s{k}.laz", xyz, rng.integers(1, 12, n),
-                               origin=ORIGIN, rgb=rng.integers(0, 65535, (n, 3)),
-                               gps_time=ids, crs="EPSG:32633"))
+        files.append(
+            write_las(
+                root / "archive" / f"s{k}.laz",
+                xyz,
+                rng.integers(1, 12, n),
+                origin=ORIGIN,
+                rgb=rng.integers(0, 65535, (n, 3)),
+                gps_time=ids,
+                crs="EPSG:32633",
+            )
+        )
         truth.append(xyz + ORIGIN)
     ingest(root / "archive", root / "store.zarr", tile_size_m=10.0)
-    return {"store": TileStore.open(root / "store.zarr"), "files": files,
-            "truth": np.concatenate(truth)}
+    return {
+        "store": TileStore.open(root / "store.zarr"),
+        "files": files,
+        "truth": np.concatenate(truth),
+    }
 
 
 def brute_force(scene, view, max_range_m, buffer_m):
@@ -68,20 +85,24 @@ def test_in_frustum_keeps_the_frustum_plus_buffer_exactly():
     view = View("v", INTR, look_at([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]))  # along +x, z up
     # Border rays: x/z ∈ [−0.8, 0.8] (left/right), y/z ∈ [−0.6, 0.6] (up/down).
     side, top = np.hypot(1.0, 0.8), np.hypot(1.0, 0.6)
-    pts = np.array([
-        [10.0, 0.0, 0.0],  # on the axis
-        [10.0, -(8.0 + 0.9 * side), 0.0],  # 0.9 m right of the right plane
-        [10.0, -(8.0 + 1.1 * side), 0.0],  # 1.1 m right of it
-        [10.0, 0.0, 6.0 + 0.9 * top],  # 0.9 m above the top plane
-        [10.0, 0.0, 6.0 + 1.1 * top],
-        [60.9, 0.0, 0.0],  # range 60.9 ≤ 60 + 1
-        [61.1, 0.0, 0.0],
-        [-5.0, 0.0, 0.0],  # behind the camera
-    ])
-    np.testing.assert_array_equal(in_frustum(pts, view, 60.0, 1.0),
-                                  [True, True, False, True, False, True, False, False])
-    np.testing.assert_array_equal(in_frustum(pts, view, 60.0, 0.0),
-                                  [True, False, False, False, False, False, False, False])
+    pts = np.array(
+        [
+            [10.0, 0.0, 0.0],  # on the axis
+            [10.0, -(8.0 + 0.9 * side), 0.0],  # 0.9 m right of the right plane
+            [10.0, -(8.0 + 1.1 * side), 0.0],  # 1.1 m right of it
+            [10.0, 0.0, 6.0 + 0.9 * top],  # 0.9 m above the top plane
+            [10.0, 0.0, 6.0 + 1.1 * top],
+            [60.9, 0.0, 0.0],  # range 60.9 ≤ 60 + 1
+            [61.1, 0.0, 0.0],
+            [-5.0, 0.0, 0.0],  # behind the camera
+        ]
+    )
+    np.testing.assert_array_equal(
+        in_frustum(pts, view, 60.0, 1.0), [True, True, False, True, False, True, False, False]
+    )
+    np.testing.assert_array_equal(
+        in_frustum(pts, view, 60.0, 0.0), [True, False, False, False, False, False, False, False]
+    )
 
 
 def _inside_convex(poly: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -154,28 +175,25 @@ def test_crop_by_store_path_returns_classes_and_rgb(scene):
     assert cloud.classification.dtype == np.uint8 and cloud.rgb.shape == (len(cloud), 3)
     ref = read_las(scene["files"][0], origin=cloud.origin)
     by_id = dict(zip(ref.gps_time.tolist(), ref.classification.tolist(), strict=True))
-    for gid, cls in zip(cloud.gps_time[:200].tolist(), cloud.classification[:200].tolist(),
-                        strict=True):
+    for gid, cls in zip(
+        cloud.gps_time[:200].tolist(), cloud.classification[:200].tolist(), strict=True
+    ):
         if gid in by_id:
             assert by_id[gid] == cls
 
 
 def test_neighbouring_views_reuse_cached_tiles(scene):
     TILE_CACHE.clear()
-    crop_for_view(scene["store"], view_at([5.0, 30.0, 2.0], [40.0, 30.0, 2.0]),
-                  max_range_m=25.0)
+    crop_for_view(scene["store"], view_at([5.0, 30.0, 2.0], [40.0, 30.0, 2.0]), max_range_m=25.0)
     hits, misses = TILE_CACHE.hits, TILE_CACHE.misses
-    crop_for_view(scene["store"], view_at([7.0, 30.0, 2.0], [42.0, 30.0, 2.0]),
-                  max_range_m=25.0)
+    crop_for_view(scene["store"], view_at([7.0, 30.0, 2.0], [42.0, 30.0, 2.0]), max_range_m=25.0)
     assert TILE_CACHE.hits - hits >= 5
     assert TILE_CACHE.misses - misses <= 3  # only the tiles newly in view are read
 
 
 def test_crop_files_with_different_crs_names_the_file(tmp_path):
-    a = write_las(tmp_path / "a.laz", np.zeros((5, 3)), np.ones(5), origin=ORIGIN,
-                  crs="EPSG:32633")
-    b = write_las(tmp_path / "b.laz", np.zeros((5, 3)), np.ones(5), origin=ORIGIN,
-                  crs="EPSG:32632")
+    a = write_las(tmp_path / "a.laz", np.zeros((5, 3)), np.ones(5), origin=ORIGIN, crs="EPSG:32633")
+    b = write_las(tmp_path / "b.laz", np.zeros((5, 3)), np.ones(5), origin=ORIGIN, crs="EPSG:32632")
     with pytest.raises(CRSMismatchError, match="b.laz"):
         crop_for_view([a, b], VIEWS[0][0])
 
@@ -183,3 +201,16 @@ def test_crop_files_with_different_crs_names_the_file(tmp_path):
 def test_bad_range_is_refused(scene):
     with pytest.raises(InputError, match="max_range_m"):
         crop_for_view(scene["store"], VIEWS[0][0], max_range_m=-1.0)
+
+
+@pytest.mark.parametrize("from_files", [False, True])
+def test_crop_for_several_views_is_the_union_of_their_crops(scene, from_files):
+    source = scene["files"] if from_files else scene["store"]
+    views = [v for v, _, _ in VIEWS]
+    union = crop_for_views(source, views, max_range_m=30.0, buffer_m=1.0)
+    each = [crop_for_view(source, v, max_range_m=30.0, buffer_m=1.0) for v in views]
+    # The last view looks away from the data: its crop is empty and adds nothing.
+    assert len(each[-1]) == 0
+    expected = np.unique(np.concatenate([c.gps_time for c in each[:-1]]))
+    assert len(union) == len(expected) > max(len(c) for c in each)  # no point twice
+    np.testing.assert_array_equal(np.sort(union.gps_time), expected)

@@ -37,8 +37,10 @@ BOARD = (np.array([-0.8, 7.0, 1.0]), np.array([0.8, 8.0, 2.4]))  # a box, 1.6 ×
 CAMERAS = {"p.png": 0.0, "a.png": -1.0, "b.png": 1.0, "c.png": 2.0}
 # Surface filters for these small images: the paper's 30 px edge filter is given at 4000 px
 # width and shrinks to 2.4 px here, below the spacing of the z-buffered points.
-PARAMS = DetectParams(surface=SurfaceParams(max_edge_px=250.0),
-                      zbuffer=ZBufferParams(block_window_px=2, weighted_window_px=7))
+PARAMS = DetectParams(
+    surface=SurfaceParams(max_edge_px=250.0),
+    zbuffer=ZBufferParams(block_window_px=2, weighted_window_px=7),
+)
 
 
 def local_pose(x: float) -> Pose:
@@ -88,14 +90,20 @@ def render(x: float, board: bool = True) -> tuple[np.ndarray, np.ndarray]:
 def make_cloud(board: bool, step: float = 0.04) -> PointCloud:
     """Points every ``step`` m on the wall, the ground and (optionally) the board's faces."""
     xs = np.arange(-12, 12, step)
-    parts = [(np.stack(np.meshgrid(xs, [WALL_Y], np.arange(0, 8, step)), -1), classes.BUILDING),
-             (np.stack(np.meshgrid(xs, np.arange(0.5, WALL_Y, step), [0.0]), -1), classes.GROUND)]
+    parts = [
+        (np.stack(np.meshgrid(xs, [WALL_Y], np.arange(0, 8, step)), -1), classes.BUILDING),
+        (np.stack(np.meshgrid(xs, np.arange(0.5, WALL_Y, step), [0.0]), -1), classes.GROUND),
+    ]
     if board:
         lo, hi = BOARD
         a, b, h = (np.arange(lo[i], hi[i] + 1e-9, step) for i in range(3))
-        for face in (np.meshgrid(a, [lo[1]], h), np.meshgrid(a, b, [hi[2]]),
-                     np.meshgrid(a, b, [lo[2]]), np.meshgrid([lo[0]], b, h),
-                     np.meshgrid([hi[0]], b, h)):
+        for face in (
+            np.meshgrid(a, [lo[1]], h),
+            np.meshgrid(a, b, [hi[2]]),
+            np.meshgrid(a, b, [lo[2]]),
+            np.meshgrid([lo[0]], b, h),
+            np.meshgrid([hi[0]], b, h),
+        ):
             parts.append((np.stack(face, -1), classes.SIGN))
     xyz = np.concatenate([p.reshape(-1, 3) for p, _ in parts])
     cls = np.concatenate([np.full(p.size // 3, c, np.uint8) for p, c in parts])
@@ -151,9 +159,13 @@ def test_a_view_that_sees_no_points_names_the_view(images):
 def test_a_neighbour_that_sees_no_points_is_left_out(images):
     away = look_at([0.0, 0.0, 1.6], [0.0, -10.0, 1.6])
     nb = View("away.png", INTR, Pose.from_center(away.R, away.center + ORIGIN))
-    result = detect_view(images["p.png"], make_view("p.png"),
-                         [(images["a.png"], nb), (images["b.png"], make_view("b.png"))],
-                         make_cloud(board=True), PARAMS)
+    result = detect_view(
+        images["p.png"],
+        make_view("p.png"),
+        [(images["a.png"], nb), (images["b.png"], make_view("b.png"))],
+        make_cloud(board=True),
+        PARAMS,
+    )
     assert result.neighbours == ("b.png",)
 
 
@@ -179,7 +191,8 @@ def scene_dir(tmp_path_factory, images) -> Path:
         write_las(root / name, cloud.xyz[sel], cloud.classification[sel], origin=ORIGIN, crs=CRS)
     (root / "params.yaml").write_text(
         "detect:\n  surface: {max_edge_px: 250.0}\n"
-        "  zbuffer: {block_window_px: 2, weighted_window_px: 7}\n")
+        "  zbuffer: {block_window_px: 2, weighted_window_px: 7}\n"
+    )
     return root
 
 
@@ -193,9 +206,21 @@ def test_clouds_with_different_offsets_share_one_frame(scene_dir):
 
 def test_cli_writes_mask_overlay_and_summary(scene_dir, tmp_path):
     out = tmp_path / "out"
-    args = ["--cloud", str(scene_dir / "left.laz"), str(scene_dir / "right.laz"),
-            "--poses", str(scene_dir / "poses.csv"), "--images", str(scene_dir / "images"),
-            "--view", "p.png", "--params", str(scene_dir / "params.yaml"), "--out", str(out)]
+    args = [
+        "--cloud",
+        str(scene_dir / "left.laz"),
+        str(scene_dir / "right.laz"),
+        "--poses",
+        str(scene_dir / "poses.csv"),
+        "--images",
+        str(scene_dir / "images"),
+        "--view",
+        "p.png",
+        "--params",
+        str(scene_dir / "params.yaml"),
+        "--out",
+        str(out),
+    ]
     result = CliRunner().invoke(detect, args)
     assert result.exit_code == 0, result.output
     mask = cv2.imread(str(out / "p.mask.png"), cv2.IMREAD_UNCHANGED)
@@ -214,20 +239,44 @@ def test_cli_writes_mask_overlay_and_summary(scene_dir, tmp_path):
 
 
 def test_cli_with_named_neighbours(scene_dir, tmp_path):
-    args = ["--cloud", str(scene_dir / "left.laz"), "--cloud", str(scene_dir / "right.laz"),
-            "--poses", str(scene_dir / "poses.csv"), "--images", str(scene_dir / "images"),
-            "--view", "p", "--neighbours", "a.png,b.png", "--params",
-            str(scene_dir / "params.yaml"), "--out", str(tmp_path)]
+    args = [
+        "--cloud",
+        str(scene_dir / "left.laz"),
+        "--cloud",
+        str(scene_dir / "right.laz"),
+        "--poses",
+        str(scene_dir / "poses.csv"),
+        "--images",
+        str(scene_dir / "images"),
+        "--view",
+        "p",
+        "--neighbours",
+        "a.png,b.png",
+        "--params",
+        str(scene_dir / "params.yaml"),
+        "--out",
+        str(tmp_path),
+    ]
     result = CliRunner().invoke(detect, args)
     assert result.exit_code == 0, result.output
     assert json.loads((tmp_path / "p.json").read_text())["neighbours"] == ["a.png", "b.png"]
 
 
 def cli_error(scene_dir, tmp_path, view="p.png", images=None, clouds=("left.laz",)):
-    args = ["--cloud", *(str(scene_dir / c) for c in clouds),
-            "--poses", str(scene_dir / "poses.csv"),
-            "--images", str(images or scene_dir / "images"), "--view", view,
-            "--params", str(scene_dir / "params.yaml"), "--out", str(tmp_path / "out")]
+    args = [
+        "--cloud",
+        *(str(scene_dir / c) for c in clouds),
+        "--poses",
+        str(scene_dir / "poses.csv"),
+        "--images",
+        str(images or scene_dir / "images"),
+        "--view",
+        view,
+        "--params",
+        str(scene_dir / "params.yaml"),
+        "--out",
+        str(tmp_path / "out"),
+    ]
     result = CliRunner().invoke(detect, args)
     assert result.exit_code != 0
     lines = [x for x in result.output.splitlines() if x.strip()]
@@ -301,8 +350,9 @@ def test_raw_change_on_large_cells_is_computed_coarser_and_agrees(images):
     half = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, coarse)
     assert half.raw_change.shape == full.raw_change.shape == (240, 320)
     board = render(0.0)[1]
-    assert np.mean(half.raw_change[board]) == pytest.approx(np.mean(full.raw_change[board]),
-                                                            abs=0.05)
+    assert np.mean(half.raw_change[board]) == pytest.approx(
+        np.mean(full.raw_change[board]), abs=0.05
+    )
     assert np.mean(half.raw_change[~board]) < 0.02 and np.mean(half.raw_change[board]) > 0.3
 
 
@@ -345,8 +395,7 @@ def test_surface_cache_misses_for_another_cloud_image_or_pose(images):
     brighter = np.clip(p.astype(np.int16) + 1, 0, 255).astype(np.uint8)
     detect_view(brighter, view, [], cloud, PARAMS, surfaces=cache)
     moved = make_view("a.png")
-    detect_view(p, View("p.png", moved.intrinsics, moved.pose), [], cloud, PARAMS,
-                surfaces=cache)
+    detect_view(p, View("p.png", moved.intrinsics, moved.pose), [], cloud, PARAMS, surfaces=cache)
     assert (cache.hits, cache.misses) == (0, 5)
     fresh = detect_view(p, view, [], with_board, PARAMS, surfaces=None)
     assert np.array_equal(result.depth, fresh.depth, equal_nan=True)
@@ -358,8 +407,7 @@ def test_surface_cache_stays_within_its_byte_bound(images):
     one = 240 * 320 * (4 + 1 + 1)  # depth float32, classes uint8, valid bool
     cache = SurfaceCache(max_bytes=2 * one)
     nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
-    detect_view(images["p.png"], make_view("p.png"), nbs, make_cloud(False), PARAMS,
-                surfaces=cache)
+    detect_view(images["p.png"], make_view("p.png"), nbs, make_cloud(False), PARAMS, surfaces=cache)
     assert len(cache) == 2 and cache.misses == 4
 
 
@@ -370,8 +418,9 @@ def test_surface_cache_forgets_the_surfaces_of_a_freed_cloud(images):
 
     cache = SurfaceCache()
     nbs = [(images["a.png"], make_view("a.png"))]
-    detect_view(images["p.png"], make_view("p.png"), nbs, make_cloud(False), PARAMS,
-                surfaces=cache)  # that cloud is freed on return
+    detect_view(
+        images["p.png"], make_view("p.png"), nbs, make_cloud(False), PARAMS, surfaces=cache
+    )  # that cloud is freed on return
     gc.collect()
     cloud = make_cloud(False)
     detect_view(images["p.png"], make_view("p.png"), [], cloud, PARAMS, surfaces=cache)

@@ -25,8 +25,11 @@ def tiny_street(tmp_path_factory):
     from streetcd.synth import generate_street
 
     root = tmp_path_factory.mktemp("street")
-    return Path(generate_street(root / "s", seed=3, n_images=3, size=(960, 540),
-                                length_m=40.0, pose_noise_px=1.0)).parent
+    return Path(
+        generate_street(
+            root / "s", seed=3, n_images=3, size=(960, 540), length_m=40.0, pose_noise_px=1.0
+        )
+    ).parent
 
 
 def test_evaluate_scene_pools_every_view_and_scores_the_baselines(tiny_street):
@@ -40,8 +43,13 @@ def test_evaluate_scene_pools_every_view_and_scores_the_baselines(tiny_street):
         pooled = pooled + v.score.pixels
         assert v.score.pixels.n + int(_dontcare(tiny_street, v.name).sum()) == 960 * 540
     assert report.overall.pixels == pooled
-    assert set(report.baselines) == {"threshold_0.12", "threshold_0.2", "threshold_0.3",
-                                     "color_only", "color_depth_class"}
+    assert set(report.baselines) == {
+        "threshold_0.12",
+        "threshold_0.2",
+        "threshold_0.3",
+        "color_only",
+        "color_depth_class",
+    }
     # a lower threshold flags a superset of the pixels a higher one flags
     flagged = [report.baselines[f"threshold_{t}"].pixels.pd for t in (0.12, 0.2, 0.3)]
     assert flagged == sorted(flagged, reverse=True)
@@ -59,8 +67,9 @@ def test_cli_prints_the_tables_and_writes_json(tiny_street, tmp_path):
     from streetcd.cli.evaluate import evaluate
 
     out = tmp_path / "eval.json"
-    res = CliRunner().invoke(evaluate, ["--scene", str(tiny_street), "--json", str(out),
-                                        "--views", "1"])
+    res = CliRunner().invoke(
+        evaluate, ["--scene", str(tiny_street), "--json", str(out), "--views", "1"]
+    )
     assert res.exit_code == 0, res.output
     assert "Table 1" in res.output and "Table 2" in res.output
     data = json.loads(out.read_text())
@@ -99,8 +108,9 @@ def test_regraphcut_with_the_same_params_reproduces_the_detector_mask(tiny_stree
     view, *others = scene.views
     params = DetectParams()
     image = read_image(Path(view.image))
-    result = detect_view(image, view, [(read_image(Path(o.image)), o) for o in others],
-                         scene.cloud, params)
+    result = detect_view(
+        image, view, [(read_image(Path(o.image)), o) for o in others], scene.cloud, params
+    )
     again = regraphcut(image, result, params, params.graphcut)
     np.testing.assert_array_equal(again, result.mask)
 
@@ -123,9 +133,11 @@ def test_registration_tolerance_absorbs_a_two_pixel_misregistration():
     classes_p = np.full((h, w), 6, np.uint8)
     q = Neighbour(image_q, depth, intr, pose)
     inner = (slice(None), slice(8, -8))
-    paper, _ = raw_change(image_p, depth, classes_p, intr, pose, [q],
-                          CorrelateParams(registration_tolerance_px=0.0))
-    tolerant, _ = raw_change(image_p, depth, classes_p, intr, pose, [q],
-                             CorrelateParams(registration_tolerance_px=2.0))
+    paper, _ = raw_change(
+        image_p, depth, classes_p, intr, pose, [q], CorrelateParams(registration_tolerance_px=0.0)
+    )
+    tolerant, _ = raw_change(
+        image_p, depth, classes_p, intr, pose, [q], CorrelateParams(registration_tolerance_px=2.0)
+    )
     assert (paper[inner] > 0.1).mean() > 0.2
     assert tolerant[inner].max() < 1e-3  # float rounding of the re-projection only

@@ -38,9 +38,15 @@ def test_node_energy_steepness_follows_a():
 
 def pair(color_i, color_j, depth_i=10.0, depth_j=10.0, cls_i=6, cls_j=6, **switches):
     p = replace(GraphCutParams(), **switches)
-    return smoothness(np.array([color_i], float), np.array([color_j], float),
-                      np.array([depth_i]), np.array([depth_j]), np.array([cls_i]),
-                      np.array([cls_j]), p)[0]
+    return smoothness(
+        np.array([color_i], float),
+        np.array([color_j], float),
+        np.array([depth_i]),
+        np.array([depth_j]),
+        np.array([cls_i]),
+        np.array([cls_j]),
+        p,
+    )[0]
 
 
 def test_smoothness_is_zero_across_classes_and_one_for_identical_nodes():
@@ -83,9 +89,7 @@ def test_min_cut_on_a_hand_made_graph():
 
 
 def test_adjacency_counts_boundary_pixel_pairs():
-    labels = np.array([[0, 0, 1],
-                       [2, 2, 1],
-                       [2, 2, 1]])
+    labels = np.array([[0, 0, 1], [2, 2, 1], [2, 2, 1]])
     pairs, boundary = adjacency(labels)
     assert pairs.tolist() == [[0, 1], [0, 2], [1, 2]]
     assert boundary.tolist() == [1, 2, 2]
@@ -139,8 +143,10 @@ def test_superpixels_at_reduced_resolution_stay_class_pure_and_cover_the_image()
     params = GraphCutParams(superpixel_cell_px=400.0, superpixel_work_cell_px=16.0)
     labels = superpixels(image, classes, params)  # 48 px cells, SLIC at 1/3 size
     assert labels.shape == (h, w)
-    purity = [np.bincount(classes[labels == k]).max() / np.sum(labels == k)
-              for k in range(labels.max() + 1)]
+    purity = [
+        np.bincount(classes[labels == k]).max() / np.sum(labels == k)
+        for k in range(labels.max() + 1)
+    ]
     assert min(purity) > 0.9  # nearest-neighbour upsampling blurs the boundary by ≤ 1.5 px
 
 

@@ -14,19 +14,22 @@ ORIGIN = np.array([512_345.0, 5_401_234.0, 250.0])  # UTM-sized: 10⁵–10⁶ m
 
 
 def _points(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
-    return {"xyz": rng.uniform([0, 0, 0], [80, 40, 20], (n, 3)),
-            "classification": rng.integers(1, 70, n).astype(np.uint8),
-            "intensity": rng.integers(0, 65535, n).astype(np.uint16),
-            "rgb": rng.integers(0, 65535, (n, 3)).astype(np.uint16),
-            "gps_time": np.sort(rng.uniform(3e8, 3e8 + 100, n))}
+    return {
+        "xyz": rng.uniform([0, 0, 0], [80, 40, 20], (n, 3)),
+        "classification": rng.integers(1, 70, n).astype(np.uint8),
+        "intensity": rng.integers(0, 65535, n).astype(np.uint16),
+        "rgb": rng.integers(0, 65535, (n, 3)).astype(np.uint16),
+        "gps_time": np.sort(rng.uniform(3e8, 3e8 + 100, n)),
+    }
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
 def test_georeferenced_coordinates_survive_write_read_within_1mm(tmp_path, suffix):
     rng = np.random.default_rng(1)
     p = _points(rng, 5000)
-    path = write_las(tmp_path / f"a{suffix}", p["xyz"], p["classification"], origin=ORIGIN,
-                     crs="EPSG:32632")
+    path = write_las(
+        tmp_path / f"a{suffix}", p["xyz"], p["classification"], origin=ORIGIN, crs="EPSG:32632"
+    )
     cloud = read_las(path, origin=ORIGIN)
     assert np.abs(cloud.xyz - p["xyz"]).max() <= 0.0005 + 1e-9  # 1 mm scale: ≤ half a unit
     # The same points in CRS coordinates (origin zeros) agree as well.
@@ -39,9 +42,16 @@ def test_georeferenced_coordinates_survive_write_read_within_1mm(tmp_path, suffi
 def test_chunked_reading_equals_whole_file_reading(tmp_path, suffix):
     rng = np.random.default_rng(2)
     p = _points(rng, 5500)
-    path = write_las(tmp_path / f"a{suffix}", p["xyz"], p["classification"], origin=ORIGIN,
-                     intensity=p["intensity"], rgb=p["rgb"], gps_time=p["gps_time"],
-                     crs="EPSG:32632")
+    path = write_las(
+        tmp_path / f"a{suffix}",
+        p["xyz"],
+        p["classification"],
+        origin=ORIGIN,
+        intensity=p["intensity"],
+        rgb=p["rgb"],
+        gps_time=p["gps_time"],
+        crs="EPSG:32632",
+    )
     whole = read_las(path, origin=ORIGIN)
     chunks = list(iter_las_chunks(path, chunk_points=1000, origin=ORIGIN))
     assert [len(c) for c in chunks] == [1000] * 5 + [500]
@@ -54,8 +64,9 @@ def test_chunked_reading_equals_whole_file_reading(tmp_path, suffix):
 def test_las_info_reads_the_header_only(tmp_path):
     rng = np.random.default_rng(3)
     p = _points(rng, 300)
-    path = write_las(tmp_path / "a.laz", p["xyz"], p["classification"], origin=ORIGIN,
-                     crs="EPSG:25832")
+    path = write_las(
+        tmp_path / "a.laz", p["xyz"], p["classification"], origin=ORIGIN, crs="EPSG:25832"
+    )
     info = las_info(path)
     assert info.point_count == 300 and info.crs == "EPSG:25832"
     np.testing.assert_allclose(info.mins, p["xyz"].min(axis=0) + ORIGIN, atol=0.001)

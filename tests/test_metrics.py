@@ -130,8 +130,14 @@ def test_empty_truth_and_empty_detection_is_perfect_agreement():
     assert s.pixels.kappa == 1.0
     assert math.isnan(s.pixels.tp) and math.isnan(s.pixels.fp)
     assert math.isnan(s.segments.gdr) and math.isnan(s.segments.fdr)
-    assert summarize([s]).as_dict() == {"gdr": None, "fdr": None, "tp": None, "fp": None,
-                                        "kappa": 1.0, "flagged": 0.0}
+    assert summarize([s]).as_dict() == {
+        "gdr": None,
+        "fdr": None,
+        "tp": None,
+        "fp": None,
+        "kappa": 1.0,
+        "flagged": 0.0,
+    }
 
 
 def test_all_changed_on_both_sides_is_perfect_agreement():
@@ -184,13 +190,18 @@ def test_shape_mismatch_names_the_mask():
 
 
 def test_per_type_table_counts_objects_changes_and_false_detections():
-    objects = [{"id": 1, "type": "pole", "class": classes.POLE},
-               {"id": 2, "type": "pole", "class": classes.POLE},
-               {"id": 3, "type": "board", "class": classes.SIGN},
-               {"id": 4, "type": "building", "class": classes.BUILDING},
-               {"id": 5, "type": "house", "class": classes.BUILDING}]
-    changes = [{"instance_id": 1, "type": "pole"}, {"instance_id": 3, "type": "board"},
-               {"instance_id": 9, "type": "pole"}]  # 9 is never seen
+    objects = [
+        {"id": 1, "type": "pole", "class": classes.POLE},
+        {"id": 2, "type": "pole", "class": classes.POLE},
+        {"id": 3, "type": "board", "class": classes.SIGN},
+        {"id": 4, "type": "building", "class": classes.BUILDING},
+        {"id": 5, "type": "house", "class": classes.BUILDING},
+    ]
+    changes = [
+        {"instance_id": 1, "type": "pole"},
+        {"instance_id": 3, "type": "board"},
+        {"instance_id": 9, "type": "pole"},
+    ]  # 9 is never seen
     inst = np.zeros((10, 10), np.uint16)
     inst[0:4, 0:4] = 1
     inst[6:10, 6:10] = 3
@@ -201,8 +212,9 @@ def test_per_type_table_counts_objects_changes_and_false_detections():
     det_a[8:10, 0:2] = True  # false, on a pole surface
     det_b = np.zeros((10, 10), bool)
     det_b[0:2, 7:10] = True  # false, on building (two types share that class)
-    scores = [score_view(d, inst > 0, inst, class_raster=cls, min_truth_px=1)
-              for d in (det_a, det_b)]
+    scores = [
+        score_view(d, inst > 0, inst, class_raster=cls, min_truth_px=1) for d in (det_a, det_b)
+    ]
     table = per_type_table(objects, changes, scores)
     # pole: seen in 2 views, detected in 1 (half) → correctly detected
     assert table["pole"] == TypeRow(ns=2, ngt=1, ncdc=1, nfdc=1)

@@ -19,10 +19,24 @@ from streetcd.params import (
 def test_paper_defaults():
     p = DetectParams()
     z = p.zbuffer
-    assert (z.block_window_px, z.weighted_window_px, z.gamma_px, z.delta_color, z.tau, z.max_angle_deg) == (5, 15, 100.0, 10.0, 0.5, 45.0)
+    assert (
+        z.block_window_px,
+        z.weighted_window_px,
+        z.gamma_px,
+        z.delta_color,
+        z.tau,
+        z.max_angle_deg,
+    ) == (5, 15, 100.0, 10.0, 0.5, 45.0)
     assert (p.surface.max_depth_jump_m, p.surface.max_edge_px) == (0.5, 30.0)
     g = p.graphcut
-    assert (g.a, g.b, g.superpixel_cell_px, g.compactness, g.class_penalty, g.speckle_min_px) == (45.0, 11.0, 50.0, 20.0, 400.0, 200)
+    assert (g.a, g.b, g.superpixel_cell_px, g.compactness, g.class_penalty, g.speckle_min_px) == (
+        45.0,
+        11.0,
+        50.0,
+        20.0,
+        400.0,
+        200,
+    )
 
 
 def test_params_are_frozen_and_validated():

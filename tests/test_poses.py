@@ -23,12 +23,16 @@ CRS = "EPSG:32648"
 
 def _views(n=5):
     rng = np.random.default_rng(7)
-    intr = [Intrinsics(1920, 1080, 1400.0, 1400.0, 959.5, 539.5),
-            Intrinsics(4000, 3000, 2900.0, 2901.0, 1999.5, 1499.5, (-0.05, 0.01, 1e-4, -2e-4, 0.0))]
+    intr = [
+        Intrinsics(1920, 1080, 1400.0, 1400.0, 959.5, 539.5),
+        Intrinsics(4000, 3000, 2900.0, 2901.0, 1999.5, 1499.5, (-0.05, 0.01, 1e-4, -2e-4, 0.0)),
+    ]
     views = []
     for i in range(n):
         # 10^5–10^6 m coordinates, as a georeferenced archive has them.
-        c = np.array([372_000.0 + 4.5 * i, 143_000.0 + rng.uniform(-1, 1), 1.6 + rng.uniform(0, 0.1)])
+        c = np.array(
+            [372_000.0 + 4.5 * i, 143_000.0 + rng.uniform(-1, 1), 1.6 + rng.uniform(0, 0.1)]
+        )
         pose = look_at(c, c + [rng.uniform(-5, 5), 15.0, rng.uniform(0, 3)])
         views.append(View(f"IMG_{i:04d}.jpg", intr[i % 2], pose, None, float(i)))
     return views
@@ -67,7 +71,9 @@ def test_opk_csv_round_trip(tmp_path):
 
 def test_colmap_principal_point_is_shifted_by_half_a_pixel(tmp_path):
     write_colmap_text(tmp_path, _views(1))
-    line = [ln for ln in (tmp_path / "cameras.txt").read_text().splitlines() if not ln.startswith("#")][0]
+    line = [
+        ln for ln in (tmp_path / "cameras.txt").read_text().splitlines() if not ln.startswith("#")
+    ][0]
     assert line.split()[1] == "PINHOLE"
     assert float(line.split()[6]) == pytest.approx(960.0)  # COLMAP cx = OpenCV cx + 0.5
 

@@ -24,21 +24,31 @@ ORIGIN = np.array([634_000.0, 5_712_000.0, 40.0])  # CRS metres, 10⁵–10⁶ m
 TILE = 15.0
 
 
-def make_archive(root: Path, rng: np.random.Generator, n_files: int = 4, n: int = 3000,
-                 crs: str = "EPSG:32632") -> dict[str, np.ndarray]:
+def make_archive(
+    root: Path, rng: np.random.Generator, n_files: int = 4, n: int = 3000, crs: str = "EPSG:32632"
+) -> dict[str, np.ndarray]:
     """Files whose footprints overlap (so tiles get fragments from several files); returns
     all points as CRS integers in mm (N, 3) int64 with their gps_time ids."""
     xyz_all, ids = [], []
     for k in range(n_files):
         xyz = rng.uniform([k * 6.0, 0.0, 0.0], [k * 6.0 + 25.0, 27.0, 12.0], (n, 3))
         gps = np.arange(k * n, (k + 1) * n, dtype=np.float64)
-        write_las(root / f"strip_{k}.laz", xyz, rng.integers(1, 12, n), origin=ORIGIN,
-                  intensity=rng.integers(0, 4000, n), rgb=rng.integers(0, 65535, (n, 3)),
-                  gps_time=gps, crs=crs)
+        write_las(
+            root / f"strip_{k}.laz",
+            xyz,
+            rng.integers(1, 12, n),
+            origin=ORIGIN,
+            intensity=rng.integers(0, 4000, n),
+            rgb=rng.integers(0, 65535, (n, 3)),
+            gps_time=gps,
+            crs=crs,
+        )
         xyz_all.append(read_las(root / f"strip_{k}.laz", origin=np.zeros(3)).xyz)
         ids.append(gps)
-    return {"mm": np.rint(np.concatenate(xyz_all) * 1000).astype(np.int64),
-            "ids": np.concatenate(ids)}
+    return {
+        "mm": np.rint(np.concatenate(xyz_all) * 1000).astype(np.int64),
+        "ids": np.concatenate(ids),
+    }
 
 
 def all_points(store: TileStore) -> tuple[dict[str, PointCloud], np.ndarray, np.ndarray]:
@@ -61,17 +71,24 @@ def assert_same_store(a: Path, b: Path) -> None:
     assert sa.files == sb.files
     # No uncommitted fragment directories left on disk.
     for s in (a, b):
-        on_disk = {(t.name, f.name) for t in (s / "tiles").iterdir() if t.is_dir()
-                   for f in t.iterdir()
-                   if f.is_dir()}
+        on_disk = {
+            (t.name, f.name)
+            for t in (s / "tiles").iterdir()
+            if t.is_dir()
+            for f in t.iterdir()
+            if f.is_dir()
+        }
         listed = {(t.id, f.key) for t in TileStore.open(s).tiles.values() for f in t.fragments}
         assert on_disk == listed
         assert not (s / "_staging").exists()
 
 
 def snapshot(root: Path) -> dict[str, tuple[bytes, int]]:
-    return {str(p.relative_to(root)): (p.read_bytes(), p.stat().st_mtime_ns)
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): (p.read_bytes(), p.stat().st_mtime_ns)
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 @pytest.fixture
@@ -84,8 +101,9 @@ def archive(tmp_path):
 
 def test_every_point_lands_in_exactly_one_tile_whatever_the_file_order(archive, tmp_path):
     d, truth = archive
-    at_once = ingest(d, tmp_path / "a.zarr", tile_size_m=TILE, chunk_points=1000,
-                     buffer_points=1500)
+    at_once = ingest(
+        d, tmp_path / "a.zarr", tile_size_m=TILE, chunk_points=1000, buffer_points=1500
+    )
     assert at_once.ok and at_once.points == len(truth["ids"])
     for f in sorted(d.glob("*.laz"), reverse=True):  # one file per run, reverse order
         ingest(f, tmp_path / "b.zarr", tile_size_m=TILE, chunk_points=1000)
@@ -131,16 +149,25 @@ def test_bbox_lookup_equals_brute_force(archive, tmp_path):
         lo = ORIGIN[:2] + rng.uniform(-20, 60, 2)
         hi = lo + rng.uniform(0, 40, 2)
         got = {t.id for t in store.tiles_in_bbox(lo[0], lo[1], hi[0], hi[1])}
-        want = {t.id for t in store.tiles.values() if t.box[0] <= hi[0] and t.box[2] > lo[0]
-                and t.box[1] <= hi[1] and t.box[3] > lo[1]}
+        want = {
+            t.id
+            for t in store.tiles.values()
+            if t.box[0] <= hi[0] and t.box[2] > lo[0] and t.box[1] <= hi[1] and t.box[3] > lo[1]
+        }
         assert got == want
 
 
 def test_parallel_ingest_equals_serial_ingest(archive, tmp_path):
     d, _ = archive
     seen = []
-    r = ingest(d, tmp_path / "par.zarr", tile_size_m=TILE, workers=2, chunk_points=1000,
-               progress=lambda done, total, name: seen.append((done, total)))
+    r = ingest(
+        d,
+        tmp_path / "par.zarr",
+        tile_size_m=TILE,
+        workers=2,
+        chunk_points=1000,
+        progress=lambda done, total, name: seen.append((done, total)),
+    )
     ingest(d, tmp_path / "ser.zarr", tile_size_m=TILE, workers=1)
     assert r.ok and len(r.ingested) == 4
     assert seen[-1][0] == seen[-1][1] == 12000  # chunk progress came back from the workers
@@ -170,8 +197,14 @@ def test_crash_mid_file_then_resume_equals_clean_ingest(archive, tmp_path):
             raise Crash(name)
 
     with pytest.raises(Crash):
-        ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000,
-               buffer_points=1500, progress=crash_in_third_file)
+        ingest(
+            d,
+            tmp_path / "s.zarr",
+            tile_size_m=TILE,
+            chunk_points=1000,
+            buffer_points=1500,
+            progress=crash_in_third_file,
+        )
     # Only the two committed files are visible, though strip_2 had fragments on disk.
     half = TileStore.open(tmp_path / "s.zarr")
     assert half.point_count == 6000
@@ -211,8 +244,14 @@ def test_changed_file_replaces_its_points(archive, tmp_path):
     ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
     rng = np.random.default_rng(11)
     xyz = rng.uniform([30, 30, 0], [45, 40, 5], (500, 3))  # moved to other tiles
-    write_las(d / "strip_1.laz", xyz, np.full(500, 6), origin=ORIGIN,
-              gps_time=np.arange(500.0), crs="EPSG:32632")
+    write_las(
+        d / "strip_1.laz",
+        xyz,
+        np.full(500, 6),
+        origin=ORIGIN,
+        gps_time=np.arange(500.0),
+        crs="EPSG:32632",
+    )
     os.utime(d / "strip_1.laz", ns=(1, 1_700_000_000_000_000_000))
     r = ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
     assert [Path(p).name for p in r.ingested] == ["strip_1.laz"]
@@ -230,19 +269,40 @@ def _nan_offset(path: Path) -> None:
 def test_bad_files_fail_by_name_and_good_files_still_complete(archive, tmp_path):
     d, truth = archive
     rng = np.random.default_rng(5)
-    cut = write_las(d / "cut.laz", rng.uniform(0, 20, (20000, 3)), np.full(20000, 2),
-                    origin=ORIGIN, crs="EPSG:32632")
+    cut = write_las(
+        d / "cut.laz",
+        rng.uniform(0, 20, (20000, 3)),
+        np.full(20000, 2),
+        origin=ORIGIN,
+        crs="EPSG:32632",
+    )
     cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
     write_las(d / "empty.laz", np.zeros((0, 3)), np.zeros(0), crs="EPSG:32632")
     (d / "zero.laz").write_bytes(b"")
-    _nan_offset(write_las(d / "nan.las", rng.uniform(0, 20, (50, 3)), np.full(50, 2),
-                          origin=ORIGIN, crs="EPSG:32632"))
-    write_las(d / "other_crs.laz", rng.uniform(0, 20, (50, 3)), np.full(50, 2), origin=ORIGIN,
-              crs="EPSG:25832")
+    _nan_offset(
+        write_las(
+            d / "nan.las",
+            rng.uniform(0, 20, (50, 3)),
+            np.full(50, 2),
+            origin=ORIGIN,
+            crs="EPSG:32632",
+        )
+    )
+    write_las(
+        d / "other_crs.laz",
+        rng.uniform(0, 20, (50, 3)),
+        np.full(50, 2),
+        origin=ORIGIN,
+        crs="EPSG:25832",
+    )
     r = ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=4000)
-    expected = {"cut.laz": "CorruptFileError", "empty.laz": "InputError",
-                "zero.laz": "CorruptFileError", "nan.las": "InputError",
-                "other_crs.laz": "CRSMismatchError"}
+    expected = {
+        "cut.laz": "CorruptFileError",
+        "empty.laz": "InputError",
+        "zero.laz": "CorruptFileError",
+        "nan.las": "InputError",
+        "other_crs.laz": "CRSMismatchError",
+    }
     assert {Path(p).name for p in r.failed} == set(expected)
     for path, message in r.failed.items():
         assert Path(path).name in message
@@ -318,8 +378,10 @@ def test_cli_ingest_and_tiles_json(archive, tmp_path):
     (d / "zero.laz").write_bytes(b"")
     runner = CliRunner()
     store = tmp_path / "s.zarr"
-    r = runner.invoke(ingest_cmd, ["--archive", str(d), "--store", str(store),
-                                   "--tile-size", "15", "--workers", "1"])
+    r = runner.invoke(
+        ingest_cmd,
+        ["--archive", str(d), "--store", str(store), "--tile-size", "15", "--workers", "1"],
+    )
     assert r.exit_code == 1, r.output  # a file failed: reported, the rest ingested
     assert "zero.laz" in r.output and "4 files ingested" in r.output
     r = runner.invoke(tiles_cmd, [str(store), "--json"])
@@ -335,6 +397,15 @@ def test_cli_ingest_and_tiles_json(archive, tmp_path):
 
 def test_cli_pipeline_needs_pdal_reader(archive, tmp_path):
     d, _ = archive
-    r = CliRunner().invoke(ingest_cmd, ["--archive", str(d), "--store", str(tmp_path / "s"),
-                                        "--pipeline", str(tmp_path / "p.json")])
+    r = CliRunner().invoke(
+        ingest_cmd,
+        [
+            "--archive",
+            str(d),
+            "--store",
+            str(tmp_path / "s"),
+            "--pipeline",
+            str(tmp_path / "p.json"),
+        ],
+    )
     assert r.exit_code != 0 and "needs --reader pdal" in r.output

@@ -170,6 +170,74 @@ def test_metric_variant_erases_only_a_surrounded_point():
         assert {1, 2} <= set(kept)
 
 
+def _near_pole_scene(rng):
+    """A pole face 1 m from the camera (0.3 × 0.6 m, points 0.06 m apart: 24 px, wider than
+    w1 = 15 px) in front of a wall 8 m away (points 0.05 m apart: 2.5 px). The image shows
+    the pole's colour over its silhouette and the wall's elsewhere.
+
+    Returns projected points, image, is_pole, occluded (wall points behind the pole).
+    """
+    pose = look_at([0, -1, 0], [0, 0, 0])
+    px, pz = np.meshgrid(np.linspace(-0.15, 0.15, 6), np.linspace(-0.3, 0.3, 11))
+    front = np.column_stack([px.ravel(), np.zeros(px.size), pz.ravel()])
+    wx, wz = np.meshgrid(np.arange(-3.0, 3.0, 0.05), np.arange(-2.4, 2.4, 0.05))
+    wall = np.column_stack([wx.ravel(), np.full(wx.size, 7.0), wz.ravel()])
+    wall[:, [0, 2]] += rng.uniform(-0.01, 0.01, (len(wall), 2))
+    xyz = np.vstack([front, wall])
+    is_pole = np.r_[np.ones(len(front), bool), np.zeros(len(wall), bool)]
+    # a wall point is hidden where its ray crosses the pole plane (depth 1 of 8) on the pole
+    hidden = (np.abs(wall[:, 0] / 8) < 0.15) & (np.abs(wall[:, 2] / 8) < 0.3)
+    occluded = np.r_[np.zeros(len(front), bool), hidden]
+    v, u = np.mgrid[0:H, 0:W]
+    # + 0.5 px: a pole point on the silhouette belongs to the pixel that contains it
+    on_pole = (np.abs(u - INTR.cx) <= 0.15 * F + 0.5) & (np.abs(v - INTR.cy) <= 0.3 * F + 0.5)
+    image = np.where(on_pole[..., None], FRONT_RGB, BACK_RGB) + rng.integers(-1, 2, (H, W, 3))
+    points = project_cloud(xyz, np.zeros(len(xyz), np.uint8), INTR, pose, 60.0)
+    return points, image.astype(np.uint8), is_pole[points.index], occluded[points.index]
+
+
+def test_adaptive_window_removes_the_wall_seen_through_a_near_pole():
+    points, image, is_pole, occluded = _near_pole_scene(np.random.default_rng(3))
+    b5 = block_zbuffer(points.uv, points.depth, (H, W), 5)
+    paper = ZBufferParams(point_spacing_m=0.0)
+    fixed = weighted_zbuffer(points.uv, points.depth, image, paper, focal_px=F)
+    adaptive = weighted_zbuffer(
+        points.uv, points.depth, image, ZBufferParams(point_spacing_m=0.06), focal_px=F
+    )
+    assert occluded[b5].sum() > 300  # BWZB lets the wall through the 24 px interspaces
+    # w1 = 15 px reaches no pole point from most of them
+    assert occluded[fixed].sum() > 0.5 * occluded[b5].sum()
+    assert occluded[adaptive].sum() == 0
+    assert is_pole[adaptive].sum() == is_pole[b5].sum() == 66  # the pole keeps its points
+    # wall points whose pixel shows the wall all stay (the pixels on the silhouette show the
+    # pole: those are not told apart by eq. 2)
+    col, row = np.floor(points.uv + 0.5).astype(int).T
+    shows_wall = np.abs(image[row, col].astype(int) - BACK_RGB).max(axis=1) <= 1
+    seen_wall = ~is_pole & ~occluded & shows_wall
+    assert seen_wall[b5].sum() > 1500
+    assert seen_wall[adaptive].sum() == seen_wall[b5].sum()
+
+
+def test_adaptive_window_keeps_a_near_wall_seen_at_an_angle():
+    # A plain wall 0.7–2 m away at 45°, points 0.06 m apart (11–35 px): the adaptive window
+    # is wide here, the image uniform (every neighbour supports), and depth grows across it;
+    # the surround rule must still keep ≥ 99 % of its points.
+    rng = np.random.default_rng(4)
+    x, z = np.meshgrid(np.arange(-0.6, 1.5, 0.06), np.arange(-0.6, 0.6, 0.06))
+    wall = np.column_stack([x.ravel(), x.ravel(), z.ravel()])
+    wall += rng.uniform(-0.01, 0.01, wall.shape)
+    points = project_cloud(
+        wall, np.zeros(len(wall), np.uint8), INTR, look_at([0, -1, 0], [0, 0, 0]), 60.0
+    )
+    image = np.full((H, W, 3), 90, np.uint8)
+    b5 = block_zbuffer(points.uv, points.depth, (H, W), 5)
+    adaptive = weighted_zbuffer(
+        points.uv, points.depth, image, ZBufferParams(point_spacing_m=0.06), focal_px=F
+    )
+    assert len(b5) > 300
+    assert len(adaptive) >= 0.99 * len(b5)
+
+
 def test_weighted_zbuffer_rejects_a_grey_image():
     with pytest.raises(InputError, match="uint8 RGB"):
         weighted_zbuffer(np.zeros((1, 2)), np.ones(1), np.zeros((5, 5), np.uint8), ZBufferParams())

@@ -25,8 +25,15 @@ def _table1(console: Any, overall: dict, baselines: dict) -> None:
         t.add_column(col, justify="left" if col == "method" else "right")
     rows = [("proposed", overall), *baselines.items()]
     for name, r in rows:
-        t.add_row(name, _num(r["gdr"]), _num(r["fdr"]), _num(r["tp"]), _num(r["fp"]),
-                  _num(r["kappa"], 3), _num(r["flagged"], 2))
+        t.add_row(
+            name,
+            _num(r["gdr"]),
+            _num(r["fdr"]),
+            _num(r["tp"]),
+            _num(r["fp"]),
+            _num(r["kappa"], 3),
+            _num(r["flagged"], 2),
+        )
     console.print(t)
 
 
@@ -48,9 +55,14 @@ def _table2(console: Any, per_type: dict) -> None:
 def _progress(console: Any) -> Any:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
-    return Progress("[progress.description]{task.description}", BarColumn(),
-                    MofNCompleteColumn(), TimeElapsedColumn(), console=console,
-                    transient=True)
+    return Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    )
 
 
 def _write_json(path: Path | None, data: dict) -> None:
@@ -63,25 +75,52 @@ def _write_json(path: Path | None, data: dict) -> None:
 
 
 @click.command("evaluate")
-@click.option("--scene", type=click.Path(exists=True, file_okay=False, path_type=Path),
-              help="Synthetic scene folder (from `streetcd synth`).")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path),
-              help="Write the results as JSON here.")
-@click.option("--params", "params_path", type=click.Path(exists=True, dir_okay=False,
-              path_type=Path), help="Parameter YAML (default: streetcd.params defaults, = configs/default.yaml).")
-@click.option("--views", "max_views", type=click.IntRange(min=1),
-              help="Evaluate only the first N views.")
+@click.option(
+    "--scene",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="Synthetic scene folder (from `streetcd synth`).",
+)
+@click.option(
+    "--json",
+    "json_out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write the results as JSON here.",
+)
+@click.option(
+    "--params",
+    "params_path",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Parameter YAML (default: streetcd.params defaults, = configs/default.yaml).",
+)
+@click.option(
+    "--views", "max_views", type=click.IntRange(min=1), help="Evaluate only the first N views."
+)
 @click.option("--no-baselines", is_flag=True, help="Skip the Fig. 10(d) baselines.")
-@click.option("--sweep-pose-noise", "sweep",
-              help="Comma-separated pose noise levels in pixels, e.g. 0,1,3,5,10: generate "
-                   "one scene per level (same seed) and report kappa against each.")
+@click.option(
+    "--sweep-pose-noise",
+    "sweep",
+    help="Comma-separated pose noise levels in pixels, e.g. 0,1,3,5,10: generate "
+    "one scene per level (same seed) and report kappa against each.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sweep scenes.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
-              default=Path("out/eval-scenes"), show_default=True,
-              help="Where the sweep's scenes are generated and cached.")
-def evaluate(scene: Path | None, json_out: Path | None, params_path: Path | None,
-             max_views: int | None, no_baselines: bool, sweep: str | None, seed: int,
-             out_dir: Path) -> None:
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("out/eval-scenes"),
+    show_default=True,
+    help="Where the sweep's scenes are generated and cached.",
+)
+def evaluate(
+    scene: Path | None,
+    json_out: Path | None,
+    params_path: Path | None,
+    max_views: int | None,
+    no_baselines: bool,
+    sweep: str | None,
+    seed: int,
+    out_dir: Path,
+) -> None:
     """Score the detector on a synthetic scene: Table 1 (GDR, FDR, TP, FP, kappa) with the
     paper's baselines, Table 2 per object type; or kappa against the registration error."""
     from rich.console import Console
@@ -103,16 +142,22 @@ def evaluate(scene: Path | None, json_out: Path | None, params_path: Path | None
     _write_json(json_out, data)
 
 
-def _run_scene(console: Any, scene: Path, params: Any, max_views: int | None,
-               baselines: bool) -> dict:
+def _run_scene(
+    console: Any, scene: Path, params: Any, max_views: int | None, baselines: bool
+) -> dict:
     from streetcd.evaluate import evaluate_scene, load_scene
 
     n = len(load_scene(scene).views) if max_views is None else max_views
     progress = _progress(console)
     with progress:
         task = progress.add_task(f"evaluating {scene.name}", total=n)
-        report = evaluate_scene(scene, params, max_views=max_views, baselines=baselines,
-                                progress=lambda name: progress.advance(task))
+        report = evaluate_scene(
+            scene,
+            params,
+            max_views=max_views,
+            baselines=baselines,
+            progress=lambda name: progress.advance(task),
+        )
     data = report.as_dict()
     _table1(console, data["overall"], data["baselines"])
     _table2(console, data["per_type"])
@@ -120,8 +165,9 @@ def _run_scene(console: Any, scene: Path, params: Any, max_views: int | None,
     return data
 
 
-def _run_sweep(console: Any, sweep: str, seed: int, out_dir: Path, params: Any,
-               max_views: int | None) -> dict:
+def _run_sweep(
+    console: Any, sweep: str, seed: int, out_dir: Path, params: Any, max_views: int | None
+) -> dict:
     from rich.table import Table
 
     from streetcd.evaluate import ensure_scene, evaluate_scene
@@ -129,8 +175,9 @@ def _run_sweep(console: Any, sweep: str, seed: int, out_dir: Path, params: Any,
     try:
         levels = [float(x) for x in sweep.split(",") if x.strip()]
     except ValueError:
-        raise click.BadParameter(f"{sweep!r} is not a comma-separated list of numbers",
-                                 param_hint="--sweep-pose-noise") from None
+        raise click.BadParameter(
+            f"{sweep!r} is not a comma-separated list of numbers", param_hint="--sweep-pose-noise"
+        ) from None
     rows: list[dict[str, Any]] = []
     progress = _progress(console)
     with progress:
@@ -140,14 +187,26 @@ def _run_sweep(console: Any, sweep: str, seed: int, out_dir: Path, params: Any,
             root = ensure_scene(out_dir, seed=seed, pose_noise_px=level)
             progress.update(task, description=f"{level:g} px: detecting")
             rep = evaluate_scene(root, params, max_views=max_views, baselines=False)
-            rows.append({"pose_noise_px": level, **rep.overall.as_dict(),
-                         "seconds_per_view": rep.seconds_per_view, "scene": str(root)})
+            rows.append(
+                {
+                    "pose_noise_px": level,
+                    **rep.overall.as_dict(),
+                    "seconds_per_view": rep.seconds_per_view,
+                    "scene": str(root),
+                }
+            )
             progress.advance(task)
     t = Table(title=f"Kappa against registration error (seed {seed})")
     for col in ("pose noise (px)", "KC", "GDR (%)", "FDR (%)", "TP (%)", "FP (%)"):
         t.add_column(col, justify="right")
     for r in rows:
-        t.add_row(f"{r['pose_noise_px']:g}", _num(r["kappa"], 3), _num(r["gdr"]),
-                  _num(r["fdr"]), _num(r["tp"]), _num(r["fp"]))
+        t.add_row(
+            f"{r['pose_noise_px']:g}",
+            _num(r["kappa"], 3),
+            _num(r["gdr"]),
+            _num(r["fdr"]),
+            _num(r["tp"]),
+            _num(r["fp"]),
+        )
     console.print(t)
     return {"seed": seed, "sweep": rows}

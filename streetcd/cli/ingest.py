@@ -16,22 +16,62 @@ from streetcd.errors import StreetcdError
 
 
 @click.command()
-@click.option("--archive", required=True, metavar="DIR_OR_GLOB",
-              help="Directory (searched recursively), glob pattern or file of LAS/LAZ.")
-@click.option("--store", required=True, type=click.Path(), metavar="STORE.zarr",
-              help="Tile store to create or update.")
-@click.option("--tile-size", default=50.0, show_default=True, type=float,
-              help="Ground tile edge in metres (fixed when the store is created).")
-@click.option("--workers", default=min(4, os.cpu_count() or 1), show_default=True, type=int,
-              help="Processes reading files in parallel.")
-@click.option("--reader", type=click.Choice(["laspy", "pdal"]), default="laspy",
-              show_default=True, help="Point reader; pdal needs the optional PDAL install.")
-@click.option("--pipeline", type=click.Path(dir_okay=False), default=None,
-              help="PDAL pipeline JSON applied to each file (with --reader pdal).")
-@click.option("--chunk-points", default=1_000_000, show_default=True, type=int,
-              help="Points read per chunk (memory per worker scales with it).")
-def ingest(archive: str, store: str, tile_size: float, workers: int, reader: str,
-           pipeline: str | None, chunk_points: int) -> None:
+@click.option(
+    "--archive",
+    required=True,
+    metavar="DIR_OR_GLOB",
+    help="Directory (searched recursively), glob pattern or file of LAS/LAZ.",
+)
+@click.option(
+    "--store",
+    required=True,
+    type=click.Path(),
+    metavar="STORE.zarr",
+    help="Tile store to create or update.",
+)
+@click.option(
+    "--tile-size",
+    default=50.0,
+    show_default=True,
+    type=float,
+    help="Ground tile edge in metres (fixed when the store is created).",
+)
+@click.option(
+    "--workers",
+    default=min(4, os.cpu_count() or 1),
+    show_default=True,
+    type=int,
+    help="Processes reading files in parallel.",
+)
+@click.option(
+    "--reader",
+    type=click.Choice(["laspy", "pdal"]),
+    default="laspy",
+    show_default=True,
+    help="Point reader; pdal needs the optional PDAL install.",
+)
+@click.option(
+    "--pipeline",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="PDAL pipeline JSON applied to each file (with --reader pdal).",
+)
+@click.option(
+    "--chunk-points",
+    default=1_000_000,
+    show_default=True,
+    type=int,
+    help="Points read per chunk (memory per worker scales with it).",
+)
+def ingest(
+    archive: str,
+    store: str,
+    tile_size: float,
+    workers: int,
+    reader: str,
+    pipeline: str | None,
+    chunk_points: int,
+) -> None:
     """Stream an MLS archive (LAS/LAZ) into square ground tiles of a zarr tile store.
 
     Resumable: files already ingested (same size and mtime) are skipped.
@@ -51,28 +91,47 @@ def ingest(archive: str, store: str, tile_size: float, workers: int, reader: str
     console = Console(stderr=True)
     try:
         point_reader = get_reader(reader, pipeline)
-        with Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                      TextColumn("{task.fields[points]}"),
-                      TimeRemainingColumn(), console=console) as bar:
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TaskProgressColumn(),
+            TextColumn("{task.fields[points]}"),
+            TimeRemainingColumn(),
+            console=console,
+        ) as bar:
             job = bar.add_task("ingest (reading headers)", total=None, points="")
 
             def on_progress(done: int, total: int, name: str) -> None:
-                bar.update(job, completed=done, total=total, description=f"ingest {name}",
-                           points=f"{done:,}/{total:,} points")
+                bar.update(
+                    job,
+                    completed=done,
+                    total=total,
+                    description=f"ingest {name}",
+                    points=f"{done:,}/{total:,} points",
+                )
 
-            result = run_ingest(archive, store, tile_size_m=tile_size, workers=workers,
-                                reader=point_reader, chunk_points=chunk_points,
-                                progress=on_progress)
+            result = run_ingest(
+                archive,
+                store,
+                tile_size_m=tile_size,
+                workers=workers,
+                reader=point_reader,
+                chunk_points=chunk_points,
+                progress=on_progress,
+            )
     except StreetcdError as exc:
         raise click.ClickException(str(exc)) from None
     rate = result.points / result.seconds if result.seconds > 0 else 0.0
-    click.echo(f"{result.store}: {len(result.ingested)} files ingested "
-               f"({result.points:,} points, {rate:,.0f} points/s), {len(result.skipped)} "
-               f"already there, {len(result.failed)} failed; {result.tiles} tiles "
-               f"in {result.seconds:.1f} s")
+    click.echo(
+        f"{result.store}: {len(result.ingested)} files ingested "
+        f"({result.points:,} points, {rate:,.0f} points/s), {len(result.skipped)} "
+        f"already there, {len(result.failed)} failed; {result.tiles} tiles "
+        f"in {result.seconds:.1f} s"
+    )
     for path, message in result.failed.items():
-        click.echo(f"failed: {message}" if path in message else f"failed: {path}: {message}",
-                   err=True)
+        click.echo(
+            f"failed: {message}" if path in message else f"failed: {path}: {message}", err=True
+        )
     if result.failed:
         sys.exit(1)
 
@@ -96,17 +155,24 @@ def tiles(store: str, as_json: bool) -> None:
 
     from streetcd.classes import NAMES
 
-    table = Table(title=f"{ts.path}  ({ts.crs}, {ts.tile_size_m:g} m tiles, "
-                        f"{len(ts)} tiles, {ts.point_count:,} points)")
+    table = Table(
+        title=f"{ts.path}  ({ts.crs}, {ts.tile_size_m:g} m tiles, "
+        f"{len(ts)} tiles, {ts.point_count:,} points)"
+    )
     for col in ("tile", "min x, y, z", "max x, y, z", "points", "classes", "sources"):
         table.add_column(col, justify="right" if col == "points" else "left")
     for tile in sorted(ts.tiles.values(), key=lambda t: (t.i, t.j)):
         top = sorted(tile.classes.items(), key=lambda kv: -kv[1])[:3]
         classes = ", ".join(f"{NAMES.get(c, c)} {n / tile.count:.0%}" for c, n in top)
         b = tile.bounds
-        table.add_row(tile.id, f"{b[0]:.2f}, {b[1]:.2f}, {b[2]:.2f}",
-                      f"{b[3]:.2f}, {b[4]:.2f}, {b[5]:.2f}", f"{tile.count:,}", classes,
-                      str(len(tile.fragments)))
+        table.add_row(
+            tile.id,
+            f"{b[0]:.2f}, {b[1]:.2f}, {b[2]:.2f}",
+            f"{b[3]:.2f}, {b[4]:.2f}, {b[5]:.2f}",
+            f"{tile.count:,}",
+            classes,
+            str(len(tile.fragments)),
+        )
     Console().print(table)
     bad = {p: r for p, r in ts.files.items() if r["status"] == "failed"}
     for p, r in bad.items():

@@ -47,11 +47,19 @@ class PointCloud:
 
     def subset(self, mask: np.ndarray) -> PointCloud:
         """The points where ``mask`` (N,) bool (or an index array) selects."""
+
         def pick(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[mask]
 
-        return PointCloud(self.xyz[mask], self.origin, self.classification[mask],
-                          pick(self.intensity), pick(self.rgb), pick(self.gps_time), self.crs)
+        return PointCloud(
+            self.xyz[mask],
+            self.origin,
+            self.classification[mask],
+            pick(self.intensity),
+            pick(self.rgb),
+            pick(self.gps_time),
+            self.crs,
+        )
 
 
 def crs_string(crs: object) -> str:
@@ -127,15 +135,21 @@ def write_las(
     return path
 
 
-def _points_to_cloud(points: laspy.ScaleAwarePointRecord, header: laspy.LasHeader,
-                     origin: np.ndarray, crs: str | None) -> PointCloud:
+def _points_to_cloud(
+    points: laspy.ScaleAwarePointRecord,
+    header: laspy.LasHeader,
+    origin: np.ndarray,
+    crs: str | None,
+) -> PointCloud:
     shift = np.asarray(header.offsets, dtype=np.float64) - origin
     scales = np.asarray(header.scales, dtype=np.float64)
-    xyz = np.column_stack([
-        np.asarray(points.X, dtype=np.float64) * scales[0] + shift[0],
-        np.asarray(points.Y, dtype=np.float64) * scales[1] + shift[1],
-        np.asarray(points.Z, dtype=np.float64) * scales[2] + shift[2],
-    ])
+    xyz = np.column_stack(
+        [
+            np.asarray(points.X, dtype=np.float64) * scales[0] + shift[0],
+            np.asarray(points.Y, dtype=np.float64) * scales[1] + shift[1],
+            np.asarray(points.Z, dtype=np.float64) * scales[2] + shift[2],
+        ]
+    )
     names = set(points.point_format.dimension_names)
     rgb = None
     if {"red", "green", "blue"} <= names:
@@ -166,8 +180,9 @@ def read_las(path: str | Path, origin: np.ndarray | None = None) -> PointCloud:
     except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
         raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ: {exc}") from None
     if len(points) != header.point_count:
-        raise CorruptFileError(f"{path}: truncated: header says {header.point_count} points, "
-                               f"read {len(points)}")
+        raise CorruptFileError(
+            f"{path}: truncated: header says {header.point_count} points, read {len(points)}"
+        )
     cloud = _points_to_cloud(points, header, org, crs)
     if not np.all(np.isfinite(cloud.xyz)):
         raise InputError(f"{path}: field 'X/Y/Z' has non-finite coordinates")
@@ -202,18 +217,24 @@ def las_info(path: str | Path) -> LasInfo:
     try:
         with laspy.open(path) as reader:
             h = reader.header
-            return LasInfo(path, int(h.point_count), header_crs(h, path),
-                           np.asarray(h.mins, dtype=np.float64), np.asarray(h.maxs, dtype=np.float64),
-                           np.asarray(h.offsets, dtype=np.float64),
-                           np.asarray(h.scales, dtype=np.float64))
+            return LasInfo(
+                path,
+                int(h.point_count),
+                header_crs(h, path),
+                np.asarray(h.mins, dtype=np.float64),
+                np.asarray(h.maxs, dtype=np.float64),
+                np.asarray(h.offsets, dtype=np.float64),
+                np.asarray(h.scales, dtype=np.float64),
+            )
     except InputError:
         raise
     except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
         raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ: {exc}") from None
 
 
-def iter_las_chunks(path: str | Path, chunk_points: int = 1_000_000,
-                    origin: np.ndarray | None = None) -> Iterator[PointCloud]:
+def iter_las_chunks(
+    path: str | Path, chunk_points: int = 1_000_000, origin: np.ndarray | None = None
+) -> Iterator[PointCloud]:
     """Stream ``path`` as :class:`PointCloud` chunks of at most ``chunk_points`` points.
 
     Coordinates are local to ``origin`` (3,) float64 CRS metres (default the header offset),
@@ -238,15 +259,18 @@ def iter_las_chunks(path: str | Path, chunk_points: int = 1_000_000,
                 seen += len(points)
                 cloud = _points_to_cloud(points, header, org, crs)
                 if not np.all(np.isfinite(cloud.xyz)):
-                    raise InputError(f"{path}: field 'X/Y/Z' has non-finite coordinates "
-                                     f"(header scales {list(header.scales)}, "
-                                     f"offsets {list(header.offsets)})")
+                    raise InputError(
+                        f"{path}: field 'X/Y/Z' has non-finite coordinates "
+                        f"(header scales {list(header.scales)}, "
+                        f"offsets {list(header.offsets)})"
+                    )
                 yield cloud
             expected = int(header.point_count)
     except InputError:
         raise
     except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
-        raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ after {seen} points: "
-                               f"{exc}") from None
+        raise CorruptFileError(
+            f"{path}: cannot be read as LAS/LAZ after {seen} points: {exc}"
+        ) from None
     if seen != expected:
         raise CorruptFileError(f"{path}: truncated: header says {expected} points, read {seen}")

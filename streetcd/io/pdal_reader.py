@@ -22,9 +22,11 @@ import numpy as np
 from streetcd.errors import CorruptFileError, InputError, MissingInputError, OptionalDependencyError
 from streetcd.io.las import LasInfo, PointCloud, crs_string
 
-INSTALL_HINT = ("the PDAL reader needs the 'pdal' Python package and the PDAL C++ library: "
-                "pip install streetcd[pdal] (with PDAL installed, e.g. conda install -c "
-                "conda-forge pdal python-pdal), or use --reader laspy")
+INSTALL_HINT = (
+    "the PDAL reader needs the 'pdal' Python package and the PDAL C++ library: "
+    "pip install streetcd[pdal] (with PDAL installed, e.g. conda install -c "
+    "conda-forge pdal python-pdal), or use --reader laspy"
+)
 
 
 def import_pdal() -> Any:
@@ -86,8 +88,15 @@ class PdalReader:
         mins = np.array([b.get("minx", 0.0), b.get("miny", 0.0), b.get("minz", 0.0)], float)
         maxs = np.array([b.get("maxx", 0.0), b.get("maxy", 0.0), b.get("maxz", 0.0)], float)
         wkt = (qi.get("srs") or {}).get("wkt") or None
-        return LasInfo(path, int(qi.get("num_points", 0)), crs_string(wkt) if wkt else None,
-                       mins, maxs, np.zeros(3), np.full(3, 0.001))
+        return LasInfo(
+            path,
+            int(qi.get("num_points", 0)),
+            crs_string(wkt) if wkt else None,
+            mins,
+            maxs,
+            np.zeros(3),
+            np.full(3, 0.001),
+        )
 
     def chunks(self, path: Path, chunk_points: int) -> Iterator[PointCloud]:
         """Stream PDAL's point views in chunks (CRS coordinates, float64)."""
@@ -110,10 +119,15 @@ def _to_cloud(arr: np.ndarray, crs: str | None, path: Path) -> PointCloud:
     if {"Red", "Green", "Blue"} <= names:
         rgb = np.column_stack([arr["Red"], arr["Green"], arr["Blue"]]).astype(np.uint16)
     return PointCloud(
-        xyz=xyz, origin=np.zeros(3),
-        classification=(arr["Classification"].astype(np.uint8) if "Classification" in names
-                        else np.ones(n, np.uint8)),
+        xyz=xyz,
+        origin=np.zeros(3),
+        classification=(
+            arr["Classification"].astype(np.uint8)
+            if "Classification" in names
+            else np.ones(n, np.uint8)
+        ),
         intensity=arr["Intensity"].astype(np.uint16) if "Intensity" in names else None,
         rgb=rgb,
         gps_time=arr["GpsTime"].astype(np.float64) if "GpsTime" in names else None,
-        crs=crs)
+        crs=crs,
+    )

@@ -71,7 +71,13 @@ def _intrinsics_from_colmap(model: str, width: int, height: int, p: dict[str, fl
     assert fx is not None and fy is not None
     if model == "FULL_OPENCV" and any(p[k] != 0.0 for k in ("k4", "k5", "k6")):
         raise InputError("FULL_OPENCV with rational terms k4..k6 is not supported")
-    dist = (p.get("k1", 0.0), p.get("k2", 0.0), p.get("p1", 0.0), p.get("p2", 0.0), p.get("k3", 0.0))
+    dist = (
+        p.get("k1", 0.0),
+        p.get("k2", 0.0),
+        p.get("p1", 0.0),
+        p.get("p2", 0.0),
+        p.get("k3", 0.0),
+    )
     return Intrinsics(width, height, fx, fy, p["cx"] - 0.5, p["cy"] - 0.5, dist)
 
 
@@ -109,12 +115,16 @@ def read_colmap_cameras_text(path: Path) -> dict[int, Intrinsics]:
             raise InputError(f"{path}:{number}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS…")
         model = parts[1]
         if model not in _COLMAP_MODELS:
-            raise InputError(f"{path}:{number}: field 'MODEL' = {model!r} is not supported "
-                             f"(use one of {', '.join(_COLMAP_MODELS)})")
+            raise InputError(
+                f"{path}:{number}: field 'MODEL' = {model!r} is not supported "
+                f"(use one of {', '.join(_COLMAP_MODELS)})"
+            )
         names = _COLMAP_MODELS[model][1]
         if len(parts) != 4 + len(names):
-            raise InputError(f"{path}:{number}: model {model} needs {len(names)} parameters "
-                             f"({', '.join(names)}), got {len(parts) - 4}")
+            raise InputError(
+                f"{path}:{number}: model {model} needs {len(names)} parameters "
+                f"({', '.join(names)}), got {len(parts) - 4}"
+            )
         values = {n: _finite(v, path, number, n) for n, v in zip(names, parts[4:], strict=True)}
         width = int(_finite(parts[2], path, number, "WIDTH"))
         height = int(_finite(parts[3], path, number, "HEIGHT"))
@@ -151,11 +161,14 @@ def read_colmap_text(path: str | Path, image_dir: str | Path | None = None) -> P
         q_t = [_finite(v, images_txt, number, f) for v, f in zip(parts[1:8], fields, strict=True)]
         camera_id = int(_finite(parts[8], images_txt, number, "CAMERA_ID"))
         if camera_id not in cameras:
-            raise InputError(f"{images_txt}:{number}: field 'CAMERA_ID' = {camera_id} is not "
-                             f"in {cameras_txt}")
+            raise InputError(
+                f"{images_txt}:{number}: field 'CAMERA_ID' = {camera_id} is not in {cameras_txt}"
+            )
         name = parts[9]
         if np.linalg.norm(q_t[:4]) < 1e-12:
-            raise InputError(f"{images_txt}:{number}: field 'QW..QZ' of {name} is a zero quaternion")
+            raise InputError(
+                f"{images_txt}:{number}: field 'QW..QZ' of {name} is a zero quaternion"
+            )
         pose = Pose(quaternion_to_rotation(np.array(q_t[:4])), np.array(q_t[4:]))
         image = Path(image_dir) / name if image_dir is not None else None
         views.append(View(name, cameras[camera_id], pose, image, float(len(views))))
@@ -192,14 +205,20 @@ def write_colmap_text(folder: str | Path, views: Iterable[View], crs: str | None
     cam_lines = []
     for intr, cid in camera_ids.items():
         model, params = _colmap_camera_params(intr)
-        cam_lines.append(f"{cid} {model} {intr.width} {intr.height} "
-                         + " ".join(f"{p:.17g}" for p in params) + "\n")
+        cam_lines.append(
+            f"{cid} {model} {intr.width} {intr.height} "
+            + " ".join(f"{p:.17g}" for p in params)
+            + "\n"
+        )
     (folder / "cameras.txt").write_text(
         "# Camera list with one line of data per camera:\n"
-        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "".join(cam_lines))
-    header = ("# Image list with two lines of data per image:\n"
-              "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
-              "#   POINTS2D[] as (X, Y, POINT3D_ID)\n")
+        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "".join(cam_lines)
+    )
+    header = (
+        "# Image list with two lines of data per image:\n"
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)\n"
+    )
     if crs:
         header += f"# CRS: {crs}\n"
     images_txt = folder / "images.txt"
@@ -235,7 +254,9 @@ def read_colmap_binary(path: str | Path, image_dir: str | Path | None = None) ->
             raise InputError(f"{cameras_bin}: field 'model_id' = {mid} is not supported")
         model, names = _COLMAP_BY_ID[mid]
         params, off = _unpack(f"<{len(names)}d", data, off, cameras_bin)
-        cameras[cid] = _intrinsics_from_colmap(model, width, height, dict(zip(names, params, strict=True)))
+        cameras[cid] = _intrinsics_from_colmap(
+            model, width, height, dict(zip(names, params, strict=True))
+        )
     data = images_bin.read_bytes()
     (count,), off = _unpack("<Q", data, 0, images_bin)
     views: list[View] = []
@@ -249,7 +270,9 @@ def read_colmap_binary(path: str | Path, image_dir: str | Path | None = None) ->
         (n_points,), off = _unpack("<Q", data, off, images_bin)
         off += 24 * n_points
         if cid not in cameras:
-            raise InputError(f"{images_bin}: image {name}: field 'camera_id' = {cid} not in {cameras_bin}")
+            raise InputError(
+                f"{images_bin}: image {name}: field 'camera_id' = {cid} not in {cameras_bin}"
+            )
         pose = Pose(quaternion_to_rotation(np.array(q_t[:4])), np.array(q_t[4:]))
         image = Path(image_dir) / name if image_dir is not None else None
         views.append(View(name, cameras[cid], pose, image, float(len(views))))
@@ -293,10 +316,15 @@ def write_opk_csv(path: str | Path, views: Iterable[View], crs: str) -> Path:
         for v in views:
             omega, phi, kappa = rotation_to_opk(v.pose.R)
             i = v.intrinsics
-            row = [v.name, *(f"{c:.17g}" for c in v.center),
-                   *(f"{a:.17g}" for a in (omega, phi, kappa)), i.width, i.height,
-                   *(f"{x:.17g}" for x in (i.fx, i.fy, i.cx, i.cy, *i.dist)),
-                   "" if v.time is None else f"{v.time:.17g}"]
+            row = [
+                v.name,
+                *(f"{c:.17g}" for c in v.center),
+                *(f"{a:.17g}" for a in (omega, phi, kappa)),
+                i.width,
+                i.height,
+                *(f"{x:.17g}" for x in (i.fx, i.fy, i.cx, i.cy, *i.dist)),
+                "" if v.time is None else f"{v.time:.17g}",
+            ]
             writer.writerow(row)
     return path
 
@@ -330,9 +358,15 @@ def read_opk_csv(path: str | Path, image_dir: str | Path | None = None) -> PoseS
         time = row.get("time")
         R = opk_to_rotation(num["omega"], num["phi"], num["kappa"])
         try:
-            intr = Intrinsics(int(num["width"]), int(num["height"]), num["fx"], num["fy"],
-                              num["cx"], num["cy"],
-                              (num["k1"], num["k2"], num["p1"], num["p2"], num["k3"]))
+            intr = Intrinsics(
+                int(num["width"]),
+                int(num["height"]),
+                num["fx"],
+                num["fy"],
+                num["cx"],
+                num["cy"],
+                (num["k1"], num["k2"], num["p1"], num["p2"], num["k3"]),
+            )
         except InputError as exc:
             raise InputError(f"{path}:{number}: {exc}") from None
         center = np.array([num["x"], num["y"], num["z"]])
