@@ -167,26 +167,16 @@ def _points_to_cloud(
 
 def read_las(path: str | Path, origin: np.ndarray | None = None) -> PointCloud:
     """Read a whole LAS/LAZ file into a :class:`PointCloud` (local to ``origin``, default the
-    header offset). For files larger than memory use :func:`iter_las_chunks`."""
-    path = Path(path)
-    if not path.exists():
-        raise MissingInputError(f"point cloud file not found: {path}")
-    try:
-        with laspy.open(path) as reader:
-            header = reader.header
-            crs = header_crs(header, path)
-            org = np.asarray(header.offsets if origin is None else origin, dtype=np.float64)
-            points = reader.read_points(header.point_count)
-    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
-        raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ: {exc}") from None
-    if len(points) != header.point_count:
-        raise CorruptFileError(
-            f"{path}: truncated: header says {header.point_count} points, read {len(points)}"
-        )
-    cloud = _points_to_cloud(points, header, org, crs)
-    if not np.all(np.isfinite(cloud.xyz)):
-        raise InputError(f"{path}: field 'X/Y/Z' has non-finite coordinates")
-    return cloud
+    header offset). For files larger than memory use :func:`iter_las_chunks`; this is its
+    one-chunk case, so both report missing, corrupt, truncated and non-finite input alike."""
+    info = las_info(path)
+    chunks = list(iter_las_chunks(path, chunk_points=max(1, info.point_count), origin=origin))
+    if chunks:
+        assert len(chunks) == 1, "one chunk of point_count points holds the whole file"
+        return chunks[0]
+    # A valid file without points: an empty cloud in the frame its header gives.
+    org = info.offsets if origin is None else np.asarray(origin, dtype=np.float64)
+    return PointCloud(np.empty((0, 3)), org, np.empty(0, np.uint8), crs=info.crs)
 
 
 # --- chunked reading (files larger than memory) ------------------------------------------
