@@ -1,37 +1,66 @@
 """The MLS archive as a zarr v3 tile store: ingest (streamed, resumable, parallel) and reading.
 
-Layout of ``STORE.zarr`` (one zarr v3 hierarchy)::
+Layout of ``STORE.zarr`` (format ``streetcd-tiles/2``, one zarr v3 hierarchy)::
 
-    zarr.json                    root group; attribute ``streetcd_tiles`` = the tile index
-    tiles/<i>_<j>/               one group per ground tile: i = ⌊X / tile_size⌋, j = ⌊Y / tile_size⌋
-    tiles/<i>_<j>/<key>/         one fragment per (tile, source file version), arrays:
+    zarr.json            root group; attribute ``streetcd_tiles``: the store settings
+                         (tile_size_m, scale_m, origin, crs), ``files`` (a record per source
+                         path) and ``generation`` N, the index generation readers use
+    index/g<N>/          the tile index; group attribute ``sources``: [path, key] per row
+        segments    (S, 11) int64  i, j, source row, start, count, min xyz, max xyz
+        classes     (K, 3)  int64  segment row, class code, point count
+    points/<key>/        every point of one source file version, one array per field
         xyz             (N, 3) int32   round((X_crs − corner) / scale), corner = (i·ts, j·ts, 0)
         classification  (N,) uint8
         intensity       (N,) uint16    when the source has it (LAS always does)
         rgb             (N, 3) uint16  when present
         gps_time        (N,) float64   when present
-    _staging/<key>/<i>_<j>/      fragments of a file being ingested; moved under tiles/ on commit
+    _staging/<key>/      a source being ingested; renamed to points/<key> when committed
+    .lock                held (flock) by the one ingest that writes the store
+
+A **segment** is rows ``start … start + count`` of ``points/<key>`` that all lie in tile
+(i, j) = (⌊X / tile_size⌋, ⌊Y / tile_size⌋); its min/max xyz are in the integer units of
+``xyz``. Ingest buffers each tile's points and writes them out as one run, so a tile is one
+segment per source, or a few when a source is larger than the ingest buffer. Segment rows are
+sorted by (i, j, source row, start): a tile is a block of consecutive rows, and its points
+come in source-path order, then file order.
+
+**Why this layout.** The cost of building the store is one zarr array per field per source
+file, one chunk per 262,144 points and one index row per segment: linear in points, a few
+bytes per tile. (The first layout, a group of arrays per tile and file plus a rename each,
+took 44 s for 1,000 tiles and over 460 s for 10,000.) Opening reads two small arrays, not
+a JSON object per tile; a bounding-box lookup is a binary search of the box's grid cells in
+the sorted (i, j) codes, so its cost does not grow with the store.
 
 **Coordinates** are int32 at the store scale (1 mm by default) relative to the tile corner: a
 50 m tile spans 0…50 000 units, z (CRS heights) fits ±2 147 km, and the tile grid is anchored
 at CRS (0, 0), so a tile's content does not depend on which file came first. Measured on
-scan-like MLS points (see benchmarks/ingest.py, ``--compare-coords``): int32 + Blosc-zstd stores
+scan-like MLS points (see benchmarks/ingest.py, ``coords`` table): int32 + Blosc-zstd stores
 xyz in about a third of the bytes of local float64 and decodes faster; the quantisation error
 (≤ 0.5 mm) is below the 1 mm scale every MLS archive is delivered at.
 
-**Visibility and resumability.** The index (root attribute, rewritten atomically by zarr for
-each committed file) is the only thing readers trust: a fragment exists for a reader only
-once the index lists it. A worker writes a file's fragments under ``_staging/<key>``; the
-single committing process then renames them into ``tiles/`` and writes the index. A crash at
-any point leaves either the old index (the file is re-ingested next time; stray directories
-are swept at the start of the next ingest) or the new one. The fragment key hashes the file's
-absolute path, size and mtime, so a changed file gets new fragments and the old ones go only
-after the new index is written. Files already in the index with the same size and mtime are
-skipped; re-ingesting an unchanged archive writes nothing. One ingest at a time per store.
+**Visibility and resumability.** Readers trust only the root attribute: a generation and the
+points of a source exist for them once it names them. A worker writes a file under
+``_staging/<key>``; the single committing process renames it to ``points/<key>``, writes
+``index/g<N+1>`` and then the root attribute with generation N + 1 (zarr writes zarr.json to
+a temporary file and renames it: atomic). That write is the commit point: a crash leaves the
+old index (the file is ingested again next time) or the new one; what no committed index
+names (staging, old generations, replaced sources) is removed after the commit or at the
+start of the next ingest. The key hashes the file's absolute path, size and mtime, so a
+changed file gets a new key and replaces the old version in one commit. Files already in the
+index with the same size and mtime are skipped; re-ingesting an unchanged archive writes
+nothing. A file gone from the archive keeps its points unless ingest runs with ``prune``.
+
+**One ingest at a time.** Ingest holds an exclusive ``flock`` on ``STORE/.lock``; a second
+ingest into the same store fails at once with :class:`StoreLockedError` (failing beats
+waiting: a nightly flow retries, a person sees why). The kernel drops the lock when its
+holder exits, even on SIGKILL, so there is never a stale lock to clear. Readers take no
+lock. A TileStore opened before a commit that replaced a source cannot read that source's
+points any more: open the store again.
 """
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import glob
 import hashlib
@@ -43,8 +72,9 @@ import shutil
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -56,15 +86,22 @@ from zarr.codecs import BloscCodec
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError, StreetcdError
 from streetcd.io.las import LasInfo, PointCloud, iter_las_chunks, las_info
 
-FORMAT = "streetcd-tiles/1"
+FORMAT = "streetcd-tiles/2"
 INDEX_ATTR = "streetcd_tiles"
+LOCK_NAME = ".lock"
 LAS_SUFFIXES = (".las", ".laz")
-FRAGMENT_CHUNK_POINTS = 262_144  # points per zarr chunk along the point axis
+CHUNK_POINTS = 262_144  # points per zarr chunk of a source's arrays
+SEGMENT_POINTS = 262_144  # a tile's buffer is written out as one segment at this size
 _COMPRESSOR = BloscCodec(cname="zstd", clevel=1, shuffle="shuffle")  # = clevel 3's size, faster
 _INT32_MAX = 2**31 - 1
+_SEGMENT_COLUMNS = 11  # i, j, source row, start, count, min xyz, max xyz
 
 # progress(points_done, points_total, message): called from the process that runs ingest().
 Progress = Callable[[int, int, str], None]
+
+
+class StoreLockedError(StreetcdError, RuntimeError):
+    """Another ingest holds the store's lock."""
 
 
 # --- readers -----------------------------------------------------------------------------
@@ -183,6 +220,14 @@ def tile_id(i: int, j: int) -> str:
     return f"{i}_{j}"
 
 
+def _cell_codes(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """(N,) uint64 codes of grid cells (i, j) int64, |i|, |j| < 2³¹, ordered as (i, j) are."""
+    bias = np.int64(2**31)
+    hi = (np.asarray(i, dtype=np.int64) + bias).astype(np.uint64)
+    lo = (np.asarray(j, dtype=np.int64) + bias).astype(np.uint64)
+    return (hi << np.uint64(32)) | lo
+
+
 def _empty_index(
     tile_size_m: float, scale_m: float, origin: np.ndarray, crs: str | None
 ) -> dict[str, Any]:
@@ -192,25 +237,77 @@ def _empty_index(
         "scale_m": scale_m,
         "origin": [float(v) for v in origin],
         "crs": crs,
+        "generation": None,
         "files": {},
-        "tiles": {},
     }
 
 
-def _aggregate(fragments: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Tile totals from its fragments' records (count, bounds, classes)."""
-    count = sum(f["count"] for f in fragments.values())
-    lo = np.min([f["bounds"][:3] for f in fragments.values()], axis=0)
-    hi = np.max([f["bounds"][3:] for f in fragments.values()], axis=0)
-    classes: dict[str, int] = {}
-    for f in fragments.values():
-        for k, n in f["classes"].items():
-            classes[k] = classes.get(k, 0) + n
-    return {
-        "count": count,
-        "bounds": [*map(float, lo), *map(float, hi)],
-        "classes": dict(sorted(classes.items(), key=lambda kv: int(kv[0]))),
-    }
+# One source's part of the index: its key, segments (s, 10) int64 (i, j, start, count,
+# min xyz, max xyz) and classes (k, 3) int64 (row in its segments, class code, count).
+_Source = tuple[str, np.ndarray, np.ndarray]
+
+
+def _read_generation(
+    path: Path, generation: int | None
+) -> tuple[list[tuple[str, str]], np.ndarray, np.ndarray]:
+    """The [(path, key)] sources, segments (S, 11) and classes (K, 3) of one index generation."""
+    if generation is None:  # a store that has no committed file yet
+        return [], np.empty((0, _SEGMENT_COLUMNS), np.int64), np.empty((0, 3), np.int64)
+    group = zarr.open_group(str(path / "index" / f"g{generation}"), mode="r")
+    listed: Any = group.attrs.asdict()["sources"]
+    sources = [(str(p), str(k)) for p, k in listed]
+    segments = np.asarray(group["segments"][:], dtype=np.int64)  # type: ignore[index]
+    classes = np.asarray(group["classes"][:], dtype=np.int64)  # type: ignore[index]
+    return sources, segments, classes
+
+
+def _split_sources(
+    sources: list[tuple[str, str]], segments: np.ndarray, classes: np.ndarray
+) -> dict[str, _Source]:
+    """The inverse of :func:`_write_generation`: the index as one block per source."""
+    seg_order = np.argsort(segments[:, 2], kind="stable")
+    seg_cuts = np.searchsorted(segments[seg_order, 2], np.arange(len(sources) + 1))
+    local = np.empty(len(segments), np.int64)  # segment row → row within its source
+    cls_source = segments[classes[:, 0], 2]
+    cls_order = np.argsort(cls_source, kind="stable")
+    cls_cuts = np.searchsorted(cls_source[cls_order], np.arange(len(sources) + 1))
+    out: dict[str, _Source] = {}
+    for row, (src, key) in enumerate(sources):
+        rows = seg_order[seg_cuts[row] : seg_cuts[row + 1]]
+        local[rows] = np.arange(len(rows))
+        cls = classes[cls_order[cls_cuts[row] : cls_cuts[row + 1]]].copy()
+        cls[:, 0] = local[cls[:, 0]]
+        out[src] = (key, np.delete(segments[rows], 2, axis=1), cls)
+    return out
+
+
+def _write_generation(path: Path, generation: int, sources: dict[str, _Source]) -> None:
+    """Write ``index/g<generation>``: the sources by path, segments sorted by (i, j, source
+    row, start) so that a tile is a block of rows, classes sorted by segment row."""
+    names = sorted(sources)
+    segs = [np.empty((0, _SEGMENT_COLUMNS), np.int64)]
+    clss = [np.empty((0, 3), np.int64)]
+    offset = 0
+    for row, src in enumerate(names):
+        _, seg, cls = sources[src]
+        segs.append(np.column_stack([seg[:, :2], np.full(len(seg), row), seg[:, 2:]]))
+        clss.append(cls + np.array([offset, 0, 0]))
+        offset += len(seg)
+    seg, cls = np.concatenate(segs), np.concatenate(clss)
+    order = np.lexsort((seg[:, 3], seg[:, 2], seg[:, 1], seg[:, 0]))
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    seg = seg[order]
+    cls[:, 0] = rank[cls[:, 0]]
+    cls = cls[np.argsort(cls[:, 0], kind="stable")]
+    group = zarr.open_group(
+        str(path / "index" / f"g{generation}"),
+        mode="w",
+        attributes={"sources": [[src, sources[src][0]] for src in names]},
+    )
+    for name, a in (("segments", seg), ("classes", cls)):
+        rows = min(max(len(a), 1), 1_048_576)
+        group.create_array(name, data=a, chunks=(rows, a.shape[1]), compressors=_COMPRESSOR)
 
 
 # --- the process-wide tile cache ---------------------------------------------------------
@@ -269,88 +366,175 @@ TILE_CACHE = TileCache(int(float(os.environ.get("STREETCD_TILE_CACHE_MB", "1024"
 # --- reading -----------------------------------------------------------------------------
 
 
+class _TileTable(Mapping[str, TileInfo]):
+    """Tile id → :class:`TileInfo` of a store, in (i, j) order; an entry is built on first
+    access, so opening a store of 10,000 tiles does not make 10,000 objects."""
+
+    def __init__(self, store: TileStore) -> None:
+        self._store = store
+        self._built: dict[int, TileInfo] = {}
+
+    def __len__(self) -> int:
+        return len(self._store._ij)
+
+    def __iter__(self) -> Iterator[str]:
+        return (tile_id(i, j) for i, j in self._store._ij.tolist())
+
+    def __getitem__(self, tid: str) -> TileInfo:
+        row = self._store._row(tid)
+        if row is None:
+            raise KeyError(tid)
+        return self.at(row)
+
+    def at(self, row: int) -> TileInfo:
+        info = self._built.get(row)
+        if info is None:
+            info = self._built[row] = self._store._info(row)
+        return info
+
+
 class TileStore:
     """A tile store opened for reading. ``TileStore.open(path)``.
 
     origin : (3,) float64, CRS metres; every PointCloud it returns is local to it.
+    tiles : mapping tile id → :class:`TileInfo`, in (i, j) order.
     """
 
-    def __init__(self, path: Path, index: dict[str, Any]) -> None:
+    def __init__(
+        self,
+        path: Path,
+        index: dict[str, Any],
+        sources: list[tuple[str, str]],
+        segments: np.ndarray,
+        classes: np.ndarray,
+    ) -> None:
         self.path = path
         self.index = index
         self.tile_size_m = float(index["tile_size_m"])
         self.scale_m = float(index["scale_m"])
         self.origin = np.asarray(index["origin"], dtype=np.float64)
         self.crs: str | None = index["crs"]
-        self.tiles: dict[str, TileInfo] = {
-            tid: self._info(tid, t) for tid, t in index["tiles"].items()
-        }
-        # (i, j) → tile: the tiles are a regular grid, so a bbox lookup touches only its cells.
-        self._grid = {(t.i, t.j): t for t in self.tiles.values()}
+        self.sources = sources
+        self._segments = segments
+        self._classes = classes
+        ij = segments[:, :2]
+        self._first = np.flatnonzero(np.r_[True, np.any(ij[1:] != ij[:-1], axis=1)])[
+            : len(segments)
+        ]
+        self._last = np.r_[self._first[1:], len(segments)].astype(np.int64)
+        self._ij = ij[self._first]
+        self._codes = _cell_codes(self._ij[:, 0], self._ij[:, 1])  # sorted: segments are
+        self._counts = (
+            np.add.reduceat(segments[:, 4], self._first) if len(segments) else np.zeros(0, int)
+        )
+        self._arrays: dict[int, dict[str, Any]] = {}  # source row → its zarr arrays
+        self.tiles = _TileTable(self)
 
     @classmethod
     def open(cls, path: str | Path) -> TileStore:
-        path = Path(path)
-        index = read_index(path)
-        if index is None:
-            raise MissingInputError(f"not a streetcd tile store (no '{INDEX_ATTR}' index): {path}")
-        return cls(path.resolve(), index)
+        path = Path(path).resolve()
+        generation = None
+        for _ in range(5):
+            index = read_index(path)
+            if index is None:
+                raise MissingInputError(
+                    f"not a streetcd tile store (no '{INDEX_ATTR}' index): {path}"
+                )
+            generation = index["generation"]
+            try:
+                return cls(path, index, *_read_generation(path, generation))
+            except FileNotFoundError:  # an ingest committed meanwhile: read the new index
+                time.sleep(0.05)
+        raise MissingInputError(f"{path}: index generation {generation} is missing")
 
-    def _info(self, tid: str, t: dict[str, Any]) -> TileInfo:
+    def _row(self, tid: str) -> int | None:
+        """The row of tile ``tid`` ("i_j"), or None where the store has no such tile."""
+        try:
+            i, j = (int(v) for v in tid.split("_"))
+        except ValueError:
+            return None
+        if not (-(2**31) <= i < 2**31 and -(2**31) <= j < 2**31):
+            return None
+        return self._grid.get((i + 2**31) << 32 | (j + 2**31))
+
+    def _info(self, row: int) -> TileInfo:
+        seg = self._segments[self._first[row] : self._last[row]]
+        i, j = (int(v) for v in self._ij[row])
         ts = self.tile_size_m
+        corner = np.array([i * ts, j * ts, 0.0])
+        lo = corner + seg[:, 5:8].min(axis=0) * self.scale_m
+        hi = corner + seg[:, 8:11].max(axis=0) * self.scale_m
+        a, b = np.searchsorted(self._classes[:, 0], [self._first[row], self._last[row]])
+        hist = np.bincount(self._classes[a:b, 1], weights=self._classes[a:b, 2], minlength=256)
+        sources, starts = np.unique(seg[:, 2], return_index=True)  # rows are sorted by source
+        counts = np.add.reduceat(seg[:, 4], starts)
         frags = tuple(
-            sorted(
-                (Fragment(k, f["source"], f["count"]) for k, f in t["fragments"].items()),
-                key=lambda f: f.source,
-            )
+            Fragment(self.sources[s][1], self.sources[s][0], int(n))
+            for s, n in zip(sources.tolist(), counts.tolist(), strict=True)
         )
         return TileInfo(
-            tid,
-            t["i"],
-            t["j"],
-            t["count"],
-            tuple(t["bounds"]),
-            (t["i"] * ts, t["j"] * ts, (t["i"] + 1) * ts, (t["j"] + 1) * ts),
-            {int(k): v for k, v in t["classes"].items()},
+            tile_id(i, j),
+            i,
+            j,
+            int(self._counts[row]),
+            (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2])),
+            (i * ts, j * ts, (i + 1) * ts, (j + 1) * ts),
+            {int(c): int(hist[c]) for c in np.flatnonzero(hist)},
             frags,
         )
 
     def __len__(self) -> int:
-        return len(self.tiles)
+        return len(self._ij)
 
     @property
     def point_count(self) -> int:
-        return sum(t.count for t in self.tiles.values())
+        return int(self._counts.sum())
 
     @property
     def files(self) -> dict[str, dict[str, Any]]:
-        """Source path → record (status "done" or "failed", size, mtime_ns, points, error)."""
+        """Source path → record (status "done" or "failed", key, size, mtime_ns, points,
+        tiles, error)."""
         return self.index["files"]
 
     def tiles_in_bbox(self, minx: float, miny: float, maxx: float, maxy: float) -> list[TileInfo]:
-        """Tiles whose square meets the box (CRS metres): a grid lookup over the box's cells
-        (or over the tiles when the box has more cells than the store has tiles)."""
+        """Tiles whose square meets the box (CRS metres), in (i, j) order: a hash lookup
+        for each grid cell of the box (a vectorised test of every tile where the box has
+        more cells than the store has tiles)."""
         ts = self.tile_size_m
         i0, i1 = math.floor(minx / ts), math.floor(maxx / ts)
         j0, j1 = math.floor(miny / ts), math.floor(maxy / ts)
-        if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._grid):
-            return [
-                t for (i, j), t in sorted(self._grid.items()) if i0 <= i <= i1 and j0 <= j <= j1
-            ]
-        cells = ((i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1))
-        return [self._grid[c] for c in cells if c in self._grid]
+        if i1 < i0 or j1 < j0:
+            return []
+        if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._ij):
+            i, j = self._ij[:, 0], self._ij[:, 1]
+            rows = np.flatnonzero((i >= i0) & (i <= i1) & (j >= j0) & (j <= j1)).tolist()
+        else:  # a view's box has a handful of cells: plain dict lookups beat numpy calls
+            grid, bias = self._grid, 2**31
+            codes = (
+                ((i + bias) << 32) | (j + bias)
+                for i in range(i0, i1 + 1)
+                for j in range(j0, j1 + 1)
+            )
+            rows = [r for c in codes if (r := grid.get(c)) is not None]
+        return [self.tiles.at(r) for r in rows]
+
+    @functools.cached_property
+    def _grid(self) -> dict[int, int]:
+        """Cell code (as :func:`_cell_codes`) → tile row; built on the first lookup."""
+        return dict(zip(self._codes.tolist(), range(len(self._codes)), strict=True))
 
     def read_tile(self, tid: str, *, cache: bool = True) -> PointCloud:
-        """All points of tile ``tid`` as a PointCloud local to :attr:`origin` (fragments in
-        source-path order). Cached in the process-wide :data:`TILE_CACHE`; its arrays are
-        then read-only (shared by every caller of this process)."""
-        info = self.tiles.get(tid)
-        if info is None:
+        """All points of tile ``tid`` as a PointCloud local to :attr:`origin` (sources in
+        path order, then file order). Cached in the process-wide :data:`TILE_CACHE`; its
+        arrays are then read-only (shared by every caller of this process)."""
+        row = self._row(tid)
+        if row is None:
             raise MissingInputError(f"{self.path}: no tile {tid!r}")
+        info = self.tiles.at(row)
         key = (str(self.path), tid, tuple((f.key, f.count) for f in info.fragments))
         if cache and (hit := TILE_CACHE.get(key)) is not None:
             return hit
-        cloud = self._read_fragments(info)
+        cloud = self._read_segments(row, info)
         if cache:
             for a in (cloud.xyz, cloud.classification, cloud.intensity, cloud.rgb, cloud.gps_time):
                 if a is not None:
@@ -358,12 +542,20 @@ class TileStore:
             TILE_CACHE.put(key, cloud)
         return cloud
 
-    def _read_fragments(self, info: TileInfo) -> PointCloud:
+    def _source_arrays(self, source: int) -> dict[str, Any]:
+        arrays = self._arrays.get(source)
+        if arrays is None:
+            key = self.sources[source][1]
+            group = zarr.open_group(str(self.path / "points" / key), mode="r")
+            arrays = self._arrays[source] = dict(group.arrays())
+        return arrays
+
+    def _read_segments(self, row: int, info: TileInfo) -> PointCloud:
         parts = []
-        for frag in info.fragments:
-            group = zarr.open_group(str(self.path / "tiles" / info.id / frag.key), mode="r")
-            parts.append({name: arr[:] for name, arr in group.arrays()})
-        names = set.intersection(*(set(p) for p in parts))  # fields every fragment has
+        for source, start, count in self._segments[self._first[row] : self._last[row], 2:5]:
+            arrays = self._source_arrays(int(source))
+            parts.append({name: a[start : start + count] for name, a in arrays.items()})
+        names = set.intersection(*(set(p) for p in parts))  # fields every source has
         cat = {n: np.concatenate([p[n] for p in parts]) for n in names}
         corner = np.array([info.i * self.tile_size_m, info.j * self.tile_size_m, 0.0])
         xyz = cat["xyz"] * self.scale_m + (corner - self.origin)  # float64, local
@@ -388,24 +580,22 @@ class TileStore:
             "tile_size_m": self.tile_size_m,
             "scale_m": self.scale_m,
             "point_count": self.point_count,
-            "tiles": [self.tiles[k].to_json() for k in sorted(self.tiles, key=_tile_order)],
+            "tiles": [t.to_json() for t in self.tiles.values()],
             "files": self.files,
         }
 
 
-def _tile_order(tid: str) -> tuple[int, int]:
-    i, j = tid.split("_")
-    return int(i), int(j)
-
-
 def read_index(path: Path) -> dict[str, Any] | None:
-    """The committed index of the store at ``path``, or None where there is no store."""
+    """The committed root record of the store at ``path``, or None where there is no store."""
     if not (path / "zarr.json").exists():
         return None
     attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     index: dict[str, Any] | None = attrs.get(INDEX_ATTR)  # type: ignore[assignment]
     if index is not None and index.get("format") != FORMAT:
-        raise InputError(f"{path}: tile store format {index.get('format')!r}, expected {FORMAT!r}")
+        raise InputError(
+            f"{path}: tile store format {index.get('format')!r}, expected {FORMAT!r}; "
+            "ingest the archive into a new store"
+        )
     return index
 
 
@@ -413,16 +603,79 @@ def read_index(path: Path) -> dict[str, Any] | None:
 
 
 @dataclass
-class _TileAccumulator:
-    """Points of one tile from one file, buffered until flushed to its fragment arrays."""
+class _TileBuffer:
+    """Points of one tile from one file, buffered until written out as a segment."""
 
     parts: list[dict[str, np.ndarray]] = field(default_factory=list)
-    buffered: int = 0
     count: int = 0
-    lo: np.ndarray = field(default_factory=lambda: np.full(3, _INT32_MAX, dtype=np.int64))
-    hi: np.ndarray = field(default_factory=lambda: np.full(3, -_INT32_MAX, dtype=np.int64))
-    classes: np.ndarray = field(default_factory=lambda: np.zeros(256, dtype=np.int64))
-    arrays: dict[str, Any] = field(default_factory=dict)  # zarr arrays, made at first flush
+
+    def take(self) -> dict[str, np.ndarray]:
+        data = {k: np.concatenate([p[k] for p in self.parts]) for k in self.parts[0]}
+        self.parts, self.count = [], 0
+        return data
+
+
+class _SourceWriter:
+    """One source file's points as one zarr array per field, written segment after segment
+    in whole chunks (a chunk is compressed and written once; the last one may be partial).
+
+    Memory: the segments not yet written, less than one chunk after each :meth:`add`.
+    """
+
+    def __init__(self, path: Path, chunk_points: int) -> None:
+        self.path = path
+        self.chunk_points = chunk_points
+        self.arrays: dict[str, Any] = {}
+        self.written = 0  # rows in the arrays
+        self.pending: list[dict[str, np.ndarray]] = []
+        self.pending_points = 0
+        self.segments: list[list[int]] = []  # i, j, start, count, min xyz, max xyz
+        self.classes: list[np.ndarray] = []  # (k, 3) segment row, class code, count
+
+    def add(self, i: int, j: int, data: dict[str, np.ndarray]) -> None:
+        """Append the points ``data`` (fields, xyz tile-local int32) of tile (i, j)."""
+        xyz, n = data["xyz"], len(data["xyz"])
+        lo, hi = xyz.min(axis=0).tolist(), xyz.max(axis=0).tolist()
+        hist = np.bincount(data["classification"], minlength=256)
+        codes = np.flatnonzero(hist)
+        row = np.full(len(codes), len(self.segments))
+        self.classes.append(np.column_stack([row, codes, hist[codes]]))
+        self.segments.append([i, j, self.written + self.pending_points, n, *lo, *hi])
+        self.pending.append(data)
+        self.pending_points += n
+        if self.pending_points >= self.chunk_points:
+            self._write(final=False)
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """Write what is pending; the segments (s, 10) and classes (k, 3), int64."""
+        if self.pending_points:
+            self._write(final=True)
+        segments = np.array(self.segments, dtype=np.int64).reshape(-1, _SEGMENT_COLUMNS - 1)
+        classes = np.concatenate([np.empty((0, 3), np.int64), *self.classes]).astype(np.int64)
+        return segments, classes
+
+    def _write(self, final: bool) -> None:
+        data = {k: np.concatenate([p[k] for p in self.pending]) for k in self.pending[0]}
+        n = self.pending_points
+        if not final:
+            n -= n % self.chunk_points
+        end = self.written + n
+        if not self.arrays:  # the first write creates the arrays with their data
+            # A source written in one go gets one chunk of its own size: zarr pads a partial
+            # chunk to full size before compressing, which made small sources cost like big.
+            rows = n if final and n < self.chunk_points else self.chunk_points
+            group = zarr.open_group(str(self.path), mode="w")
+            for k, a in data.items():
+                self.arrays[k] = group.create_array(
+                    k, data=a[:n], compressors=_COMPRESSOR, chunks=(rows, *a.shape[1:])
+                )
+        else:
+            for k, a in data.items():
+                self.arrays[k].resize((end, *a.shape[1:]))
+                self.arrays[k][self.written : end] = a[:n]
+        self.written = end
+        self.pending = [{k: a[n:] for k, a in data.items()}] if n < self.pending_points else []
+        self.pending_points -= n
 
 
 @dataclass(frozen=True)
@@ -442,7 +695,8 @@ class _FileDone:
     path: str
     key: str
     points: int
-    tiles: dict[str, dict[str, Any]]  # tile id → {i, j, count, bounds (CRS), classes}
+    segments: np.ndarray  # (s, 10) int64: i, j, start, count, min xyz, max xyz
+    classes: np.ndarray  # (k, 3) int64: segment row, class code, count
 
 
 def _split_by_tile(
@@ -477,26 +731,6 @@ def _split_by_tile(
         yield (int(i), int(j)), {n: a[s:e] for n, a in fields.items()}
 
 
-def _flush(acc: _TileAccumulator, path: Path, n: int, final: bool = False) -> None:
-    """Append the first ``n`` buffered points of ``acc`` to its fragment arrays."""
-    data = {k: np.concatenate([p[k] for p in acc.parts]) for k in acc.parts[0]}
-    if not acc.arrays:  # first flush creates the arrays with their data (fewer zarr calls)
-        # A fragment written in one go gets one chunk of its own size: zarr pads a partial
-        # chunk to full size before compressing, which made small tiles cost like big ones.
-        rows = n if final and n < FRAGMENT_CHUNK_POINTS else FRAGMENT_CHUNK_POINTS
-        group = zarr.open_group(str(path), mode="w")
-        for k, a in data.items():
-            acc.arrays[k] = group.create_array(
-                k, data=a[:n], compressors=_COMPRESSOR, chunks=(rows, *a.shape[1:])
-            )
-    else:
-        for k, a in data.items():
-            acc.arrays[k].append(a[:n])
-    rest = {k: a[n:] for k, a in data.items()}
-    acc.parts = [rest] if n < len(data["xyz"]) else []
-    acc.buffered -= n
-
-
 _WORKER_QUEUE: Any = None
 
 
@@ -506,53 +740,37 @@ def _init_worker(q: Any) -> None:
 
 
 def _ingest_file(task: _FileTask, report: Callable[[str, int], None] | None = None) -> _FileDone:
-    """Stream one file into per-tile fragments under ``task.staging``; memory is one chunk
-    plus at most ``buffer_points`` buffered points."""
+    """Stream one file into ``task.staging``, tile by tile; memory is one read chunk, at most
+    ``buffer_points`` buffered points and one zarr chunk."""
     staging = Path(task.staging)
     shutil.rmtree(staging, ignore_errors=True)
-    zarr.open_group(str(staging), mode="w")
     report = report or _queue_report
-    tiles: dict[tuple[int, int], _TileAccumulator] = {}
+    writer = _SourceWriter(staging, CHUNK_POINTS)
+    tiles: dict[tuple[int, int], _TileBuffer] = {}
     total = buffered = 0
     for cloud in task.reader.chunks(Path(task.path), task.chunk_points):
         for ij, part in _split_by_tile(cloud, task.tile_size_m, task.scale_m, task.path):
-            acc = tiles.setdefault(ij, _TileAccumulator())
-            n = len(part["xyz"])
-            acc.parts.append(part)
-            acc.buffered += n
-            acc.count += n
-            acc.lo = np.minimum(acc.lo, part["xyz"].min(axis=0))
-            acc.hi = np.maximum(acc.hi, part["xyz"].max(axis=0))
-            acc.classes += np.bincount(part["classification"], minlength=256)
-            buffered += n
-            if acc.buffered >= FRAGMENT_CHUNK_POINTS:  # whole chunks: appends stay aligned
-                full = acc.buffered - acc.buffered % FRAGMENT_CHUNK_POINTS
-                _flush(acc, staging / tile_id(*ij), full)
-                buffered -= full
-        if buffered > task.buffer_points:  # bounded memory: flush everything, even partial
-            for ij, acc in tiles.items():
-                if acc.buffered:
-                    _flush(acc, staging / tile_id(*ij), acc.buffered)
+            buf = tiles.setdefault(ij, _TileBuffer())
+            buf.parts.append(part)
+            buf.count += len(part["xyz"])
+            buffered += len(part["xyz"])
+            if buf.count >= SEGMENT_POINTS:  # a big tile goes out in big segments
+                buffered -= buf.count
+                writer.add(*ij, buf.take())
+        if buffered > task.buffer_points:  # bounded memory: write out every tile
+            for ij, buf in tiles.items():
+                if buf.count:
+                    writer.add(*ij, buf.take())
             buffered = 0
         total += len(cloud)
         report(task.path, len(cloud))
     if total == 0:
         raise InputError(f"{task.path}: contains no points")
-    out: dict[str, dict[str, Any]] = {}
-    for (i, j), acc in tiles.items():
-        if acc.buffered:
-            _flush(acc, staging / tile_id(i, j), acc.buffered, final=True)
-        corner = np.array([i * task.tile_size_m, j * task.tile_size_m, 0.0])
-        lo, hi = corner + acc.lo * task.scale_m, corner + acc.hi * task.scale_m
-        out[tile_id(i, j)] = {
-            "i": i,
-            "j": j,
-            "count": acc.count,
-            "source": task.path,
-            "bounds": [*map(float, lo), *map(float, hi)],
-            "classes": {str(c): int(acc.classes[c]) for c in np.flatnonzero(acc.classes)},
-        }
-    return _FileDone(task.path, task.key, total, out)
+    for ij, buf in tiles.items():
+        if buf.count:
+            writer.add(*ij, buf.take())
+    segments, classes = writer.finish()
+    return _FileDone(task.path, task.key, total, segments, classes)
 
 
 def _queue_report(path: str, n: int) -> None:
@@ -574,6 +792,7 @@ class IngestResult:
     points: int  # points written by this run
     tiles: int  # tiles in the store after the run
     seconds: float
+    pruned: tuple[str, ...] = ()  # sources dropped because they left the archive (prune)
 
     @property
     def ok(self) -> bool:
@@ -601,81 +820,103 @@ def _reference_crs(infos: Sequence[LasInfo]) -> str | None:
     return next((i.crs for i in infos if counts[i.crs] == best), None)
 
 
+@contextmanager
+def _store_lock(path: Path) -> Iterator[None]:
+    """Hold the ingest lock of the store at ``path`` (created as a directory if missing), or
+    raise :class:`StoreLockedError` at once."""
+    if path.exists() and not (path / "zarr.json").exists():
+        if not path.is_dir() or any(p.name != LOCK_NAME for p in path.iterdir()):
+            raise InputError(
+                f"{path}: exists and is not a streetcd tile store; choose a new path for --store"
+            )
+    path.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise StoreLockedError(
+                f"{path}: another ingest is writing to this store; run again when it is done"
+            ) from None
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 class _Store:
-    """The committing side of a tile store (single writer)."""
+    """The committing side of a tile store (single writer, holding the lock)."""
 
     def __init__(self, path: Path, index: dict[str, Any]) -> None:
         self.path = path
         self.index = index
         self.root = zarr.open_group(str(path), mode="a")
+        self.sources = _split_sources(*_read_generation(path, index["generation"]))
 
     @classmethod
     def create(cls, path: Path, index: dict[str, Any]) -> _Store:
-        root = zarr.open_group(str(path), mode="w", attributes={INDEX_ATTR: index})
-        root.require_group("tiles")
+        # Not mode="w": that would delete the lock file this process holds.
+        root = zarr.create_group(str(path), attributes={INDEX_ATTR: index})
+        root.require_group("index")
+        root.require_group("points")
         return cls(path, index)
+
+    @property
+    def tile_count(self) -> int:
+        segs = [s[:, :2] for _, s, _ in self.sources.values()]
+        ij = np.concatenate([np.empty((0, 2), np.int64), *segs])
+        return len(np.unique(_cell_codes(ij[:, 0], ij[:, 1])))
 
     def write_index(self) -> None:
         self.root.attrs.put({INDEX_ATTR: self.index})  # zarr writes zarr.json atomically
 
+    def publish(self) -> None:
+        """Write the next index generation, then point the root at it: the commit point."""
+        old = self.index["generation"]
+        new = (old or 0) + 1
+        _write_generation(self.path, new, self.sources)
+        self.index["generation"] = new
+        self.write_index()
+        shutil.rmtree(self.path / "index" / f"g{old}", ignore_errors=True)
+
     def sweep(self) -> None:
-        """Remove what no committed index lists: staging and fragments of crashed runs."""
+        """Remove what the committed index does not name: staging, other generations and
+        sources of crashed runs or replaced files."""
         shutil.rmtree(self.path / "_staging", ignore_errors=True)
-        tiles_dir = self.path / "tiles"
-        committed = self.index["tiles"]
-        for tdir in tiles_dir.iterdir() if tiles_dir.is_dir() else ():
-            if not tdir.is_dir():
-                continue
-            keep = committed.get(tdir.name, {}).get("fragments", {})
-            if not keep:
-                shutil.rmtree(tdir)
-                continue
-            for fdir in tdir.iterdir():
-                if fdir.is_dir() and fdir.name not in keep:
-                    shutil.rmtree(fdir)
+        keep = {f"g{self.index['generation']}"}
+        live = {key for key, _, _ in self.sources.values()}
+        for folder, names in (("index", keep), ("points", live)):
+            d = self.path / folder
+            for sub in d.iterdir() if d.is_dir() else ():
+                if sub.is_dir() and sub.name not in names:
+                    shutil.rmtree(sub)
 
     def commit(self, done: _FileDone, size: int, mtime_ns: int) -> None:
-        """Move a finished file's fragments into tiles/ and record it in the index."""
-        files, tiles = self.index["files"], self.index["tiles"]
-        old = files.get(done.path, {})
-        tiles_group = self.root.require_group("tiles")
-        for tid in done.tiles:
-            if tid not in tiles:
-                tiles_group.require_group(tid)
-            dst = self.path / "tiles" / tid / done.key
-            shutil.rmtree(dst, ignore_errors=True)
-            os.rename(self.path / "_staging" / done.key / tid, dst)
-        stale = old.get("key") if old.get("key") != done.key else None
-        for tid in old.get("tiles", []) if stale else []:
-            tiles[tid]["fragments"].pop(stale, None)
-        for tid, stats in done.tiles.items():
-            t = tiles.setdefault(tid, {"i": stats["i"], "j": stats["j"], "fragments": {}})
-            t["fragments"][done.key] = {
-                k: stats[k] for k in ("count", "bounds", "classes", "source")
-            }
-        for tid in set(done.tiles) | set(old.get("tiles", [])):
-            if tiles.get(tid, {}).get("fragments"):
-                tiles[tid].update(_aggregate(tiles[tid]["fragments"]))
-            else:
-                tiles.pop(tid, None)
-        files[done.path] = {
+        """Move a finished file into points/ and publish an index that lists it."""
+        old = self.sources.get(done.path)
+        if old is not None and old[0] == done.key:
+            # The same version is in the store already (kept by a failed record): the index
+            # must stop naming it before its folder is replaced.
+            del self.sources[done.path]
+            self.publish()
+        dst = self.path / "points" / done.key
+        shutil.rmtree(dst, ignore_errors=True)  # not named by the committed index
+        os.rename(self.path / "_staging" / done.key, dst)
+        self.sources[done.path] = (done.key, done.segments, done.classes)
+        self.index["files"][done.path] = {
             "status": "done",
             "key": done.key,
             "size": size,
             "mtime_ns": mtime_ns,
             "points": done.points,
-            "tiles": sorted(done.tiles, key=_tile_order),
+            "tiles": len(np.unique(_cell_codes(done.segments[:, 0], done.segments[:, 1]))),
         }
-        self.write_index()  # the commit point
-        shutil.rmtree(self.path / "_staging" / done.key, ignore_errors=True)
-        for tid in old.get("tiles", []) if stale else []:
-            shutil.rmtree(self.path / "tiles" / tid / stale, ignore_errors=True)
-            if tid not in tiles:
-                shutil.rmtree(self.path / "tiles" / tid, ignore_errors=True)
+        self.publish()
+        if old is not None and old[0] != done.key:
+            shutil.rmtree(self.path / "points" / old[0], ignore_errors=True)
 
     def fail(self, path: str, size: int, mtime_ns: int, exc: StreetcdError) -> None:
         """Record a failed file. An earlier good version of it stays in the store (its
-        ``key`` and ``tiles`` are kept so that a later good version replaces it)."""
+        ``key``, ``points`` and ``tiles`` are kept; a later good version replaces it)."""
         old = self.index["files"].get(path, {})
         rec = {k: old[k] for k in ("key", "points", "tiles") if k in old}
         rec.update(
@@ -689,6 +930,18 @@ class _Store:
             self.index["files"][path] = rec
             self.write_index()
 
+    def prune(self, present: set[str]) -> list[str]:
+        """Forget the files not in ``present`` and drop their points (one commit)."""
+        gone = sorted(p for p in self.index["files"] if p not in present)
+        keys = [self.sources.pop(p)[0] for p in gone if p in self.sources]
+        for p in gone:
+            del self.index["files"][p]
+        if gone:
+            self.publish()
+        for key in keys:
+            shutil.rmtree(self.path / "points" / key, ignore_errors=True)
+        return gone
+
 
 def ingest(
     archive: str | Path | Sequence[str | Path],
@@ -700,6 +953,7 @@ def ingest(
     reader: PointReader | None = None,
     chunk_points: int = 1_000_000,
     buffer_points: int = 4_000_000,
+    prune: bool = False,
     progress: Progress | None = None,
 ) -> IngestResult:
     """Ingest an archive of LAS/LAZ files into the tile store ``store`` (created if needed).
@@ -709,6 +963,8 @@ def ingest(
     failed in the index and in the result, and the run goes on. ``workers`` > 1 reads files
     in that many processes; commits happen here, one file at a time. Memory per process is
     about ``chunk_points + buffer_points`` points (≈ 60 B each), whatever the archive size.
+    ``prune`` drops the points of files the store has but the archive no longer lists.
+    Raises StoreLockedError when another ingest is writing to ``store``.
     """
     t0 = time.perf_counter()
     if not (tile_size_m > 0 and math.isfinite(tile_size_m)):
@@ -718,13 +974,38 @@ def ingest(
     reader = reader or LaspyReader()
     path = Path(store).resolve()
     files = find_archive_files(archive)
-    index = read_index(path)
-    if index is not None and (index["tile_size_m"] != tile_size_m or index["scale_m"] != scale_m):
-        raise InputError(
-            f"{path}: store has tile_size_m={index['tile_size_m']}, "
-            f"scale_m={index['scale_m']}; asked for {tile_size_m}, {scale_m}"
-        )
+    job = _Job(
+        path, tuple(files), tile_size_m, scale_m, workers, reader, chunk_points, buffer_points
+    )
+    with _store_lock(path):
+        return _ingest_locked(job, prune, progress, t0)
 
+
+@dataclass(frozen=True)
+class _Job:
+    """What one ingest call was asked to do."""
+
+    path: Path
+    files: tuple[Path, ...]
+    tile_size_m: float
+    scale_m: float
+    workers: int
+    reader: PointReader
+    chunk_points: int
+    buffer_points: int
+
+
+def _plan(
+    files: Sequence[Path], index: dict[str, Any] | None, reader: PointReader, path: Path
+) -> tuple[
+    list[tuple[str, LasInfo]],
+    list[str],
+    dict[str, StreetcdError],
+    dict[str, tuple[int, int]],
+    str | None,
+]:
+    """Files to ingest (with headers), to skip, that failed already; their (size, mtime_ns);
+    the store CRS."""
     failed: dict[str, StreetcdError] = {}
     stats: dict[str, tuple[int, int]] = {}
     skipped: list[str] = []
@@ -743,7 +1024,6 @@ def ingest(
             todo.append((str(f), info))
         except StreetcdError as exc:
             failed[str(f)] = exc
-
     crs = index["crs"] if index is not None else _reference_crs([i for _, i in todo])
     for fp, info in todo:
         if info.crs != crs:
@@ -751,12 +1031,19 @@ def ingest(
                 f"{fp}: field 'CRS' is {info.crs}, but the store {path.name} is in {crs}"
             )
     todo = [(fp, info) for fp, info in todo if fp not in failed]
+    return todo, skipped, failed, stats, crs
 
+
+def _ingest_locked(job: _Job, prune: bool, progress: Progress | None, t0: float) -> IngestResult:
+    path, tile_size_m, scale_m = job.path, job.tile_size_m, job.scale_m
+    index = read_index(path)
+    if index is not None and (index["tile_size_m"] != tile_size_m or index["scale_m"] != scale_m):
+        raise InputError(
+            f"{path}: store has tile_size_m={index['tile_size_m']}, "
+            f"scale_m={index['scale_m']}; asked for {tile_size_m}, {scale_m}"
+        )
+    todo, skipped, failed, stats, crs = _plan(job.files, index, job.reader, path)
     if index is None:
-        if path.exists() and any(path.iterdir()):
-            raise InputError(
-                f"{path}: exists and is not a streetcd tile store; choose a new path for --store"
-            )
         index = _empty_index(tile_size_m, scale_m, _store_origin([i for _, i in todo]), crs)
         writer = _Store.create(path, index)
     else:
@@ -775,21 +1062,22 @@ def ingest(
         if progress is not None:
             progress(done_points, total, Path(p).name)
 
+    keys = {f: _file_key(Path(f), *stats[f]) for f, _ in todo}
     tasks = [
         _FileTask(
             f,
-            _file_key(Path(f), *stats[f]),
-            str(path / "_staging" / _file_key(Path(f), *stats[f])),
+            keys[f],
+            str(path / "_staging" / keys[f]),
             tile_size_m,
             scale_m,
-            chunk_points,
-            buffer_points,
-            reader,
+            job.chunk_points,
+            job.buffer_points,
+            job.reader,
         )
         for f, _ in todo
     ]
     if todo:
-        zarr.open_group(str(path / "_staging"), mode="w")
+        (path / "_staging").mkdir(exist_ok=True)
 
     def finish(task: _FileTask, fut_result: Callable[[], _FileDone]) -> None:
         try:
@@ -802,12 +1090,13 @@ def ingest(
         writer.commit(done, *stats[task.path])
         ingested.append(task.path)
 
-    if workers == 1 or len(tasks) <= 1:
+    if job.workers == 1 or len(tasks) <= 1:
         for task in tasks:
             finish(task, functools.partial(_ingest_file, task, report))
     else:
-        _run_pool(tasks, workers, report, finish)
+        _run_pool(tasks, job.workers, report, finish)
     shutil.rmtree(path / "_staging", ignore_errors=True)
+    pruned = writer.prune({str(f) for f in job.files}) if prune else []
     points = sum(index["files"][f]["points"] for f in ingested)
     messages = {f: str(failed[f]) for f in sorted(failed)}
     return IngestResult(
@@ -816,8 +1105,9 @@ def ingest(
         tuple(skipped),
         messages,
         points,
-        len(index["tiles"]),
+        writer.tile_count,
         time.perf_counter() - t0,
+        tuple(pruned),
     )
 
 

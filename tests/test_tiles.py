@@ -14,11 +14,19 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from streetcd import tiles
 from streetcd.cli.ingest import ingest as ingest_cmd
 from streetcd.cli.ingest import tiles as tiles_cmd
 from streetcd.errors import InputError, OptionalDependencyError
 from streetcd.io.las import PointCloud, read_las, write_las
-from streetcd.tiles import TileCache, TileStore, find_archive_files, get_reader, ingest
+from streetcd.tiles import (
+    StoreLockedError,
+    TileCache,
+    TileStore,
+    find_archive_files,
+    get_reader,
+    ingest,
+)
 
 ORIGIN = np.array([634_000.0, 5_712_000.0, 40.0])  # CRS metres, 10⁵–10⁶ m
 TILE = 15.0
@@ -69,17 +77,15 @@ def assert_same_store(a: Path, b: Path) -> None:
             np.testing.assert_array_equal(getattr(ca, name), getattr(cb, name))
         assert sa.tiles[tid] == sb.tiles[tid]
     assert sa.files == sb.files
-    # No uncommitted fragment directories left on disk.
+    # Nothing uncommitted left on disk: one index generation, the listed sources' points.
     for s in (a, b):
-        on_disk = {
-            (t.name, f.name)
-            for t in (s / "tiles").iterdir()
-            if t.is_dir()
-            for f in t.iterdir()
-            if f.is_dir()
-        }
-        listed = {(t.id, f.key) for t in TileStore.open(s).tiles.values() for f in t.fragments}
-        assert on_disk == listed
+        store = TileStore.open(s)
+        points = {d.name for d in (s / "points").iterdir() if d.is_dir()}
+        assert points == {key for _, key in store.sources}
+        listed = {f.key for t in store.tiles.values() for f in t.fragments}
+        assert points == listed
+        generations = [d.name for d in (s / "index").iterdir() if d.is_dir()]
+        assert generations == [f"g{store.index['generation']}"]
         assert not (s / "_staging").exists()
 
 
@@ -187,13 +193,15 @@ class Crash(Exception):
     pass
 
 
-def test_crash_mid_file_then_resume_equals_clean_ingest(archive, tmp_path):
+def test_crash_mid_file_then_resume_equals_clean_ingest(archive, tmp_path, monkeypatch):
     d, truth = archive
+    monkeypatch.setattr(tiles, "CHUNK_POINTS", 500)  # small chunks: half a file gets written
     calls = []
 
     def crash_in_third_file(done, total, name):
         calls.append(name)
         if calls.count("strip_2.laz") == 2:  # second chunk of the third file
+            assert any((tmp_path / "s.zarr" / "_staging").rglob("c/*"))  # chunks on disk
             raise Crash(name)
 
     with pytest.raises(Crash):
@@ -220,7 +228,9 @@ def test_killed_process_mid_file_then_resume_equals_clean_ingest(archive, tmp_pa
     d, _ = archive
     script = textwrap.dedent(f"""
         import os, signal
+        from streetcd import tiles
         from streetcd.tiles import ingest
+        tiles.CHUNK_POINTS = 500  # small chunks: the file is half on disk when it dies
         n = 0
         def kill(done, total, name):
             global n
@@ -258,6 +268,71 @@ def test_changed_file_replaces_its_points(archive, tmp_path):
     ingest(d, tmp_path / "clean.zarr", tile_size_m=TILE)
     assert_same_store(tmp_path / "s.zarr", tmp_path / "clean.zarr")
     assert TileStore.open(tmp_path / "s.zarr").point_count == 9500
+
+
+def test_second_ingest_into_a_locked_store_fails_at_once(archive, tmp_path):
+    d, _ = archive
+    store = tmp_path / "s.zarr"
+    ingest(d / "strip_0.laz", store, tile_size_m=TILE)
+    with tiles._store_lock(store):  # what a running ingest holds
+        with pytest.raises(StoreLockedError, match="another ingest is writing"):
+            ingest(d, store, tile_size_m=TILE)
+    assert TileStore.open(store).point_count == 3000  # the refused run wrote nothing
+    r = ingest(d, store, tile_size_m=TILE)  # the lock went with its holder
+    assert len(r.ingested) == 3
+
+
+def test_removed_file_keeps_its_points_unless_pruned(archive, tmp_path):
+    d, _ = archive
+    store = tmp_path / "s.zarr"
+    ingest(d, store, tile_size_m=TILE)
+    gone = d / "strip_1.laz"
+    gone.unlink()
+    kept = ingest(d, store, tile_size_m=TILE)
+    assert kept.pruned == () and TileStore.open(store).point_count == 12000
+    r = ingest(d, store, tile_size_m=TILE, prune=True)
+    assert r.pruned == (str(gone),) and r.ingested == ()
+    assert (
+        TileStore.open(store).point_count == 9000 and str(gone) not in TileStore.open(store).files
+    )
+    ingest(d, tmp_path / "clean.zarr", tile_size_m=TILE)
+    assert_same_store(store, tmp_path / "clean.zarr")
+
+
+def test_store_objects_do_not_grow_with_the_tile_count(tmp_path):
+    """Regression: a zarr group of arrays per tile and file made 10,000 tiles take minutes.
+    A file's points are now one array per field, whatever the number of tiles it covers."""
+    rng = np.random.default_rng(2)
+    n_objects = []
+    for n_tiles in (4, 400):
+        side = int(np.sqrt(n_tiles))
+        cell = np.arange(2000) % n_tiles  # every tile gets points
+        xy = np.column_stack([cell // side, cell % side]) + rng.uniform(0.1, 0.9, (2000, 2))
+        xyz = np.column_stack([xy, rng.uniform(0, 5, 2000)])
+        f = write_las(
+            tmp_path / f"a{n_tiles}" / "f.laz",
+            xyz,
+            np.full(2000, 2),
+            origin=ORIGIN,
+            crs="EPSG:32632",
+        )
+        store = tmp_path / f"s{n_tiles}.zarr"
+        ingest(f, store, tile_size_m=1.0)
+        assert len(TileStore.open(store)) == n_tiles
+        n_objects.append(sum(1 for p in store.rglob("*") if p.is_file()))
+    assert n_objects[0] == n_objects[1]
+
+
+def test_tile_lookup_by_id_and_unknown_ids(archive, tmp_path):
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE)
+    store = TileStore.open(tmp_path / "s.zarr")
+    ids = list(store.tiles)
+    assert ids == sorted(ids, key=lambda t: tuple(int(v) for v in t.split("_")))
+    for tid in ids:
+        assert store.tiles[tid].id == tid and tid in store.tiles
+    for bad in ("nope", "1_2_3", "99999_99999", f"{2**40}_0"):
+        assert bad not in store.tiles and store.tiles.get(bad) is None
 
 
 def _nan_offset(path: Path) -> None:

@@ -63,6 +63,11 @@ from streetcd.errors import StreetcdError
     type=int,
     help="Points read per chunk (memory per worker scales with it).",
 )
+@click.option(
+    "--prune",
+    is_flag=True,
+    help="Drop the points of files the store has but the archive no longer lists.",
+)
 def ingest(
     archive: str,
     store: str,
@@ -71,10 +76,13 @@ def ingest(
     reader: str,
     pipeline: str | None,
     chunk_points: int,
+    prune: bool,
 ) -> None:
     """Stream an MLS archive (LAS/LAZ) into square ground tiles of a zarr tile store.
 
-    Resumable: files already ingested (same size and mtime) are skipped.
+    Resumable: files already ingested (same size and mtime) are skipped. A file removed
+    from the archive keeps its points unless --prune is given. One ingest at a time per
+    store: a second one fails at once.
     """
     from rich.console import Console
     from rich.progress import (
@@ -117,6 +125,7 @@ def ingest(
                 workers=workers,
                 reader=point_reader,
                 chunk_points=chunk_points,
+                prune=prune,
                 progress=on_progress,
             )
     except StreetcdError as exc:
@@ -128,6 +137,8 @@ def ingest(
         f"already there, {len(result.failed)} failed; {result.tiles} tiles "
         f"in {result.seconds:.1f} s"
     )
+    for path in result.pruned:
+        click.echo(f"pruned (no longer in the archive): {path}")
     for path, message in result.failed.items():
         click.echo(
             f"failed: {message}" if path in message else f"failed: {path}: {message}", err=True
@@ -161,7 +172,7 @@ def tiles(store: str, as_json: bool) -> None:
     )
     for col in ("tile", "min x, y, z", "max x, y, z", "points", "classes", "sources"):
         table.add_column(col, justify="right" if col == "points" else "left")
-    for tile in sorted(ts.tiles.values(), key=lambda t: (t.i, t.j)):
+    for tile in ts.tiles.values():  # (i, j) order
         top = sorted(tile.classes.items(), key=lambda kv: -kv[1])[:3]
         classes = ", ".join(f"{NAMES.get(c, c)} {n / tile.count:.0%}" for c, n in top)
         b = tile.bounds

@@ -1,0 +1,84 @@
+"""Reference-colour check (streetcd.appearance): colour transfer, the illumination-tolerant
+distance and where it is checked, on small exact images."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from streetcd import classes as cls
+from streetcd.appearance import (
+    appearance_change,
+    colour_distance,
+    transfer_colours,
+)
+from streetcd.params import AppearanceParams
+from streetcd.surface import rasterise, rgb8
+
+H, W = 100, 100
+
+
+def _scene():
+    """A grey wall (building) with a red board (sign, 2 % of the view, as a board 10–20 m
+    away is in a street view: the colour transfer assumes changes are a small part of the
+    view); a textured wall so the transfer has a distribution to match."""
+    ref = np.full((H, W, 3), (150, 150, 140), np.uint8)
+    ref[:, ::7] = (120, 110, 100)  # mortar lines
+    ref[40:50, 40:60] = (200, 40, 40)
+    classes = np.full((H, W), cls.BUILDING, np.uint8)
+    classes[40:50, 40:60] = cls.SIGN
+    return ref, classes
+
+
+def test_transfer_cancels_exposure_and_white_balance():
+    ref, _ = _scene()
+    image = np.clip(ref.astype(np.float32) * (0.7, 0.8, 1.1) + 10, 0, 255).astype(np.uint8)
+    mapped = transfer_colours(ref, image, np.ones((H, W), bool))
+    assert np.abs(mapped.astype(int) - image.astype(int)).max() <= 1
+
+
+def test_distance_is_zero_for_the_same_colour_and_small_for_a_shadow():
+    p = AppearanceParams()
+    wall = np.array([[150, 150, 140]], np.uint8)
+    shadow = (wall * 0.6).astype(np.uint8)  # a cast shadow: darker, same hue
+    board = np.array([[200, 40, 40]], np.uint8)
+    assert colour_distance(wall, wall, p)[0] == 0.0
+    # well below the S-curve's midpoint b / a ≈ 0.24 of eq. 7
+    assert colour_distance(shadow, wall, p)[0] < 0.1
+    assert colour_distance(wall, board, p)[0] > 0.5
+
+
+def test_a_removed_board_is_seen_only_on_the_inventory_class():
+    ref, classes = _scene()
+    image = ref.copy()
+    image[40:50, 40:60] = (150, 150, 140)  # the board is gone: wall behind it
+    image[0:8, 0:10] = (40, 40, 200)  # a blue patch on the façade: not an inventory class
+    a = appearance_change(image, ref, np.ones((H, W), bool), classes, AppearanceParams())
+    board = classes == cls.SIGN
+    assert a[board].min() > 0.5
+    assert a[~board].max() == 0.0
+
+
+def test_no_surface_and_unchecked_classes_give_zero():
+    ref, classes = _scene()
+    image = np.zeros_like(ref)
+    valid = np.zeros((H, W), bool)
+    assert not appearance_change(image, ref, valid, classes).any()
+    off = AppearanceParams(classes=())
+    assert not appearance_change(image, ref, np.ones((H, W), bool), classes, off).any()
+
+
+def test_rasterise_carries_the_colour_of_the_nearest_vertex():
+    uv = np.array([[0.0, 0.0], [9.0, 0.0], [0.0, 9.0], [9.0, 9.0]])
+    depth = np.full(4, 5.0)
+    colours = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [9, 9, 9]], np.uint8)
+    tris = np.array([[0, 1, 2], [1, 3, 2]])
+    surf = rasterise(uv, depth, np.array([1, 2, 3, 4], np.uint8), tris, (12, 12), colours)
+    assert surf.colour is not None
+    assert tuple(surf.colour[1, 1]) == (255, 0, 0) and surf.classes[1, 1] == 1
+    assert tuple(surf.colour[8, 8]) == (9, 9, 9) and surf.classes[8, 8] == 4
+    assert not surf.colour[11, 11].any() and surf.classes[11, 11] == 0  # outside: no surface
+
+
+def test_rgb8_reads_16_bit_and_8_bit_las_colours():
+    assert np.array_equal(rgb8(np.array([[65535, 257, 0]], np.uint16)), [[255, 1, 0]])
+    assert np.array_equal(rgb8(np.array([[255, 10, 0]], np.uint16)), [[255, 10, 0]])
