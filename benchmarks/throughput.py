@@ -1,35 +1,46 @@
 """Throughput of the nightly flow: views per minute with 1 and 2 Dask workers, and the
 orchestration overhead (flow wall time against the per-view work it schedules).
 
-    .venv/bin/python benchmarks/throughput.py --views 200          # the goal's setting
+    .venv/bin/python benchmarks/throughput.py                      # 200 views of 960x540
     .venv/bin/python benchmarks/throughput.py --views 24 --size 480x270   # a quick look
+    .venv/bin/python benchmarks/throughput.py --views 200 --size 1920x1080 --out /tmp/b
+                                                          # 2 MP views, the realistic case
 
 Goals: speed-up from 1 to 2 workers ≥ 1.8×; overhead ≤ 5 % at ≥ 200 views, where
 
     overhead = wall / (Σ per-view time / workers) − 1
 
-``Σ per-view time`` is what the workers spend on each view (read images, crop the cloud,
-detect, write the mask); ``Σ detect`` (the detector alone) is printed beside it. ``wall`` is
-the flow's own wall time (ingest skipped, planning, LocalCluster start, detection,
-publishing); the temporary Prefect server's start (~20 s, once per process) is outside it.
-An untimed warm-up run first fills numba's on-disk cache (else each new worker process
-compiles the detector's kernels, ~30 s, inside the timed run).
+with two readings of ``Σ per-view time``: ``Σ detect`` (the detector alone: the issue's
+definition, which counts reading images, cropping the cloud and writing masks as overhead)
+and ``Σ view`` (everything the workers do for a view: read its images, its share of the
+segment's crop, detect, write the mask and overlay). ``wall`` is the flow's own wall time:
+planning, the LocalCluster's start (overlapped with planning; ``wait`` is what was left of
+it after planning), detection, publishing. The temporary Prefect server's start (~20 s, once
+per process) is outside it. An untimed warm-up first detects two views in this process to
+fill numba's on-disk cache (else each new worker process compiles the detector's kernels,
+~30 s, inside the timed run).
+
 ``cpu/core`` is the CPU time the workers got per core-second of wall time (Σ per-view
 process time / (wall × workers)): near 100 % on free cores; far below it, the machine is
-shared and the speed-up says more about the neighbours than about the flow.
+shared and the speed-up says more about the neighbours than about the flow. The load
+average (``os.getloadavg``) is printed before and after each run for the same reason.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
+import os
 import shutil
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 
 def make_city(root: Path, views: int, size: tuple[int, int], seed: int) -> dict[str, str]:
+    """The synthetic city (reused when ``root`` already has it) and its tile store."""
     from streetcd.synth import generate_city
     from streetcd.tiles import ingest
 
@@ -55,75 +66,90 @@ def make_city(root: Path, views: int, size: tuple[int, int], seed: int) -> dict[
     }
 
 
+def warm_up(paths: dict[str, str], folder: Path) -> None:
+    """Detect two views in this process, untimed: numba compiles the detector's kernels
+    into its on-disk cache once, so that no timed worker pays for compilation (it still
+    loads the cache, and that is counted)."""
+    from streetcd import pipeline
+
+    shutil.rmtree(folder, ignore_errors=True)
+    plan = pipeline.plan_run(**paths, index=folder / "index.sqlite", out=folder)
+    first = plan.batches[0]
+    pipeline.detect_batch(dataclasses.replace(first, tasks=first.tasks[:2]))
+
+
+def load() -> str:
+    return "/".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def measure(paths: dict[str, str], out: Path, workers: int, batch_size: int) -> dict[str, Any]:
+    from flows.nightly import nightly
+
+    shutil.rmtree(out, ignore_errors=True)
+    before = load()
+    s = nightly(
+        **paths,
+        index=str(out / "change_index.sqlite"),
+        out=str(out),
+        workers=workers,
+        batch_size=batch_size,
+    )
+    s["load"] = f"{before} → {load()}"
+    s["workers"] = workers
+    return s
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    head = (
+        f"{'workers':>7} {'views':>5} {'wall s':>7} {'plan s':>6} {'wait s':>6} "
+        f"{'views/min':>9} {'Σ detect s':>10} {'Σ view s':>8} {'overhead':>17} "
+        f"{'speed-up':>8} {'cpu/core':>8}  load 1/5/15 min before → after"
+    )
+    lines = [head, f"{'':>64}{'vs detect':>9} {'vs view':>7}"]
+    base = 60 * rows[0]["n_done"] / rows[0]["wall_s"]
+    for s in rows:
+        w, wall = s["workers"], s["wall_s"]
+        vpm = 60 * s["n_done"] / wall
+        lines.append(
+            f"{w:>7} {s['n_done']:>5} {wall:>7.1f} {s['plan_s']:>6.1f} {s['wait_s']:>6.1f} "
+            f"{vpm:>9.1f} {s['detect_s']:>10.1f} {s['view_s']:>8.1f} "
+            f"{100 * (wall / (s['detect_s'] / w) - 1):>8.1f}% "
+            f"{100 * (wall / (s['view_s'] / w) - 1):>7.1f}% "
+            f"{vpm / base:>7.2f}x {100 * s['cpu_s'] / (wall * w):>7.0f}%  {s['load']}"
+        )
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--views", type=int, default=200, help="views in the synthetic city")
-    ap.add_argument("--workers", default="1,2", help="worker counts to compare")
+    ap.add_argument("--workers", default="1,2", help="worker counts to compare, in order")
     ap.add_argument("--size", default="960x540", help="image size WxH")
-    ap.add_argument("--batch-size", type=int, default=8)
+    ap.add_argument("--batch-size", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", help="work folder (kept; default a temporary one, removed)")
-    ap.add_argument("--no-warmup", action="store_true", help="skip the untimed first run")
+    ap.add_argument(
+        "--out", help="work folder (kept, and its city reused; default a temporary one)"
+    )
+    ap.add_argument("--no-warmup", action="store_true", help="skip the untimed warm-up")
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.lower().split("x"))
     from streetcd.cli.run import quiet_prefect
 
     quiet_prefect()
-    from flows.nightly import nightly
-
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="streetcd-bench-"))
+    rows = []
     try:
         paths = make_city(root, args.views, (w, h), args.seed)
-        counts = [int(x) for x in args.workers.split(",")]
         if not args.no_warmup:
-            # Untimed: numba compiles the detector's kernels into its on-disk cache once,
-            # so that no timed worker pays for compilation (it still loads the cache).
-            warm = root / "warmup"
-            shutil.rmtree(warm, ignore_errors=True)
-            nightly(
-                **paths,
-                index=str(warm / "change_index.sqlite"),
-                out=str(warm),
-                workers=max(counts),
-                batch_size=args.batch_size,
-            )
-        rows = []
-        for workers in counts:
-            out = root / f"run-{workers}w"
-            shutil.rmtree(out, ignore_errors=True)
-            s = nightly(
-                **paths,
-                index=str(out / "change_index.sqlite"),
-                out=str(out),
-                workers=workers,
-                batch_size=args.batch_size,
-            )
-            ideal = s["view_s"] / workers
-            rows.append(
-                (
-                    workers,
-                    s["n_done"],
-                    s["wall_s"],
-                    60 * s["n_done"] / s["wall_s"],
-                    s["detect_s"],
-                    s["view_s"],
-                    s["wall_s"] / ideal - 1,
-                    s["cpu_s"] / (s["wall_s"] * workers),
-                )
-            )
+            warm_up(paths, root / "warmup")
+        for workers in (int(x) for x in args.workers.split(",")):
+            rows.append(measure(paths, root / f"run-{workers}w", workers, args.batch_size))
+            print(f"{workers} worker(s): {rows[-1]['wall_s']:.1f} s", flush=True)
     finally:
         if not args.out:
             shutil.rmtree(root, ignore_errors=True)
-    base = rows[0][3]
-    print(
-        f"\n{'workers':>7} {'views':>6} {'wall s':>8} {'views/min':>10} {'Σ detect s':>11} "
-        f"{'Σ view s':>9} {'overhead':>9} {'speed-up':>9} {'cpu/core':>9}"
-    )
-    for workers, n, wall, vpm, det, view, over, share in rows:
-        print(
-            f"{workers:>7} {n:>6} {wall:>8.1f} {vpm:>10.1f} {det:>11.1f} {view:>9.1f} "
-            f"{100 * over:>8.1f}% {vpm / base:>8.2f}x {100 * share:>8.0f}%"
-        )
+    print(f"\n{args.views} views of {w}x{h}, batch size {args.batch_size}, {os.cpu_count()} cores")
+    print(table(rows))
 
 
 if __name__ == "__main__":

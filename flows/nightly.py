@@ -6,8 +6,12 @@ Dask directly (one Dask task per batch of consecutive views), so a city's thousa
 images do not become thousands of Prefect task runs.
 
 Dask: a LocalCluster of ``workers`` processes, or the cluster at ``scheduler`` /
-``$STREETCD_SCHEDULER``. Workers crop their own cloud from the tile store and read their
-own images; only small records travel back.
+``$STREETCD_SCHEDULER``, started (or connected to) while the run is planned. Workers crop
+their segment's cloud from the tile store once and read their own images; only small
+records travel back.
+
+One run at a time per index: the flow holds the index's run lock (``<index>.lock``) from
+start to end, and a second run on the same index fails at once, naming the holder.
 
 Run it with ``streetcd run`` (progress bar), ``python -m flows.nightly --help``, or deploy it
 with ``infra/prefect.yaml``.
@@ -120,7 +124,7 @@ def nightly(
     scheduler: str | None = None,
     workers: int = 2,
     params_file: str | None = None,
-    batch_size: int = 8,
+    batch_size: int = 4,
     segment_length_m: float = 100.0,
     retry_failed: bool = False,
 ) -> dict[str, Any]:
@@ -136,25 +140,31 @@ def nightly(
 
     logger = get_run_logger()
     t0 = time.perf_counter()
-    if archive:
-        ingest_archive(archive, store)
     params = pipeline.PipelineParams(
         detect=load_params(params_file),
         batch_size=batch_size,
         segments=replace(pipeline.SegmentParams(), length_m=segment_length_m),
     )
-    the_plan = plan(images, poses, store, index, out, params, retry_failed)
-    summary = pipeline.new_summary(the_plan)
-    segments = the_plan.segments_todo
-    if segments:
-        with pipeline.dask_client(scheduler, workers) as client:
+    with (
+        pipeline.run_lock(index, "the streetcd-nightly flow"),
+        pipeline.dask_client_soon(scheduler, workers) as starting,
+    ):
+        if archive:
+            ingest_archive(archive, store)
+        the_plan = plan(images, poses, store, index, out, params, retry_failed)
+        summary = pipeline.new_summary(the_plan)
+        summary.plan_s = time.perf_counter() - t0
+        segments = the_plan.segments_todo
+        if segments:
+            client = starting.result()
+            summary.wait_s = time.perf_counter() - t0 - summary.plan_s
             logger.info(
                 "dask: %s with %d worker(s), dashboard %s",
                 client.scheduler.address,
                 len(client.scheduler_info(n_workers=-1)["workers"]),
                 client.dashboard_link,
             )
-            hints = pipeline.segment_workers(client, segments)
+            hints = pipeline.plan_workers(client, the_plan)
             # quote(): hand the client and the plan over as they are; Prefect would
             # otherwise walk every dataclass in them looking for futures.
             futures = [
@@ -168,8 +178,8 @@ def nightly(
             ]
             for f in futures:
                 summary.merge(f.result())
-    pipeline.finish_run(the_plan, summary)
-    summary.wall_s = time.perf_counter() - t0
+        pipeline.finish_run(the_plan, summary)
+        summary.wall_s = time.perf_counter() - t0
     logger.info(
         "run %s finished in %.1f s: %d views, %d skipped, %d done, %d flagged, %d failed",
         summary.run_id,

@@ -19,23 +19,31 @@ transaction per batch (:meth:`ChangeIndex.publish`), so a run killed at any mome
 whole batches or nothing, and publishing the same outcome twice changes nothing.
 
 The database runs in WAL mode, so queries read while a run writes. Timestamps are UTC ISO
-8601 strings (``2026-11-22T10:00:00Z``), which compare correctly as text.
+8601 strings (``2026-11-22T10:00:00Z``), which compare correctly as text. A view's
+``captured_at`` is when its image was taken (EXIF ``DateTimeOriginal``), NULL when the
+image does not say; ``detected_at`` is when the run published it.
+
+One run at a time writes an index: :func:`run_lock` holds ``<index>.lock`` for the whole
+run, and a second run fails at once with an :class:`IndexBusyError` that names the holder.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import socket
 import sqlite3
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from streetcd.errors import CRSMismatchError, InputError, MissingInputError
+from streetcd.errors import CRSMismatchError, InputError, MissingInputError, StreetcdError
 
-SCHEMA_VERSION = "2"
+SCHEMA_VERSION = "3"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -69,7 +77,8 @@ CREATE TABLE IF NOT EXISTS views (
     flagged INTEGER NOT NULL DEFAULT 0,
     center_x REAL, center_y REAL, center_z REAL,
     detect_s REAL, total_s REAL, cpu_s REAL,  -- seconds: detector, whole view, its CPU
-    run_id TEXT, processed_at TEXT
+    run_id TEXT, processed_at TEXT,
+    captured_at TEXT  -- when the image was taken (EXIF), NULL if unknown
 );
 CREATE TABLE IF NOT EXISTS flagged (
     id INTEGER PRIMARY KEY,
@@ -81,11 +90,13 @@ CREATE TABLE IF NOT EXISTS flagged (
     mask_path TEXT,
     overlay_path TEXT,
     run_id TEXT,
-    detected_at TEXT NOT NULL
+    detected_at TEXT NOT NULL,
+    captured_at TEXT
 );
 CREATE INDEX IF NOT EXISTS flagged_segment ON flagged(segment_id);
 CREATE INDEX IF NOT EXISTS flagged_score ON flagged(score);
 CREATE INDEX IF NOT EXISTS flagged_detected ON flagged(detected_at);
+CREATE INDEX IF NOT EXISTS flagged_when ON flagged(coalesce(captured_at, detected_at));
 CREATE TABLE IF NOT EXISTS regions (
     id INTEGER PRIMARY KEY,
     flagged_id INTEGER NOT NULL REFERENCES flagged(id),
@@ -119,6 +130,69 @@ def parse_since(text: str) -> str:
     return when.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
+# --- the run lock -----------------------------------------------------------------------
+
+
+class IndexBusyError(StreetcdError, RuntimeError):
+    """Another run holds the change index's run lock."""
+
+
+def lock_path(index: str | Path) -> Path:
+    """The run lock file of the change index at ``index``: ``<index>.lock`` beside it."""
+    return Path(f"{index}.lock")
+
+
+@contextlib.contextmanager
+def run_lock(index: str | Path, what: str = "a streetcd run") -> Iterator[Path]:
+    """Hold the run lock of the change index at ``index`` while the block runs.
+
+    Fails at once with :class:`IndexBusyError`, naming the holder (what, process id, host,
+    since when) when another run holds it; nothing is changed then. Two runs on one index
+    would plan the same views and detect them twice (the index stays consistent, but the
+    second run's work is wasted and its counts are wrong), so the second one stops rather
+    than waits: a nightly job that finds last night's run still going should say so, not
+    queue up behind it.
+
+    The lock is an advisory ``flock`` on ``<index>.lock``: the kernel drops it when the
+    holder's process ends, however it ends, so a killed run never leaves a stale lock. The
+    file stays (removing it would let two runs lock two different files); it holds the
+    holder's description while held, nothing after. ``flock`` works across processes on one
+    host and on NFS v4 mounts (Linux maps it to POSIX locks there, as SQLite's own).
+    """
+    import fcntl
+
+    path = lock_path(index)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise IndexBusyError(
+                f"change index {index} is in use by another run ({_holder(fd)}; lock file "
+                f"{path}); wait for it to finish. Nothing was changed."
+            ) from None
+        holder = {"what": what, "pid": os.getpid(), "host": socket.gethostname()}
+        holder["since"] = utc_now()
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(holder).encode(), 0)
+        try:
+            yield path
+        finally:
+            os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _holder(fd: int) -> str:
+    """The lock holder as text, from the lock file's content."""
+    try:
+        h = json.loads(os.pread(fd, 4096, 0).decode())
+        return f"{h['what']}, process {h['pid']} on {h['host']} since {h['since']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "holder unknown: it has only just taken the lock"
+
+
 # --- records ------------------------------------------------------------------------------
 
 
@@ -150,6 +224,7 @@ class ViewRecord:
     status is ``"done"`` or ``"failed"`` (then ``error`` says why, naming the file or view).
     A view is flagged when ``flagged`` is true; only then are score, regions and the mask
     path listed in the ``flagged`` table. ``center`` is the camera centre in the CRS.
+    ``captured_at`` is when the image was taken (index timestamp format), None if unknown.
     """
 
     view: str
@@ -168,6 +243,7 @@ class ViewRecord:
     detect_s: float | None = None
     total_s: float | None = None
     cpu_s: float | None = None
+    captured_at: str | None = None
 
     def __post_init__(self) -> None:
         if self.status not in ("done", "failed"):
@@ -188,6 +264,7 @@ class FlaggedRow:
     detected_at: str
     center: tuple[float, float, float] | None
     regions: tuple[RegionRecord, ...] = field(default=())
+    captured_at: str | None = None
 
 
 @dataclass(frozen=True)
@@ -220,6 +297,7 @@ class ChangeIndex:
             self.conn.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable per commit
             if create:
                 with self.transaction():
+                    self._migrate()
                     self._create()
             version = self._meta("schema_version")
         except sqlite3.DatabaseError as exc:
@@ -228,6 +306,17 @@ class ChangeIndex:
         if version != SCHEMA_VERSION:
             self.conn.close()
             raise InputError(f"{self.path}: schema_version {version!r}, expected {SCHEMA_VERSION}")
+
+    def _migrate(self) -> None:
+        """Bring an index of an older schema up to this one, in place (inside a write
+        transaction). 2 → 3: ``captured_at`` on views and flagged (NULL: unknown)."""
+        has_meta = self.conn.execute(
+            "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'meta'"
+        ).fetchone()
+        if has_meta and self._meta("schema_version") == "2":
+            self.conn.execute("ALTER TABLE views ADD COLUMN captured_at TEXT")
+            self.conn.execute("ALTER TABLE flagged ADD COLUMN captured_at TEXT")
+            self.conn.execute("UPDATE meta SET value = '3' WHERE key = 'schema_version'")
 
     def _create(self) -> None:
         for statement in _SCHEMA.split(";"):
@@ -332,7 +421,7 @@ class ChangeIndex:
                 self._drop_flagged(r.view)
                 c = r.center or (None, None, None)
                 self.conn.execute(
-                    "INSERT OR REPLACE INTO views VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    "INSERT OR REPLACE INTO views VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                     (
                         r.view,
                         r.input_hash,
@@ -347,6 +436,7 @@ class ChangeIndex:
                         r.cpu_s,
                         run_id,
                         now,
+                        r.captured_at,
                     ),
                 )
                 if r.flagged:
@@ -366,7 +456,7 @@ class ChangeIndex:
     def _add_flagged(self, run_id: str, now: str, r: ViewRecord) -> None:
         cur = self.conn.execute(
             "INSERT INTO flagged (view, segment_id, score, changed_fraction, n_regions, mask_path,"
-            " overlay_path, run_id, detected_at) VALUES (?,?,?,?,?,?,?,?,?)",
+            " overlay_path, run_id, detected_at, captured_at) VALUES (?,?,?,?,?,?,?,?,?,?)",
             (
                 r.view,
                 r.segment_id,
@@ -377,6 +467,7 @@ class ChangeIndex:
                 r.overlay_path,
                 run_id,
                 now,
+                r.captured_at,
             ),
         )
         flagged_id = cur.lastrowid
@@ -412,13 +503,19 @@ class ChangeIndex:
         bbox: tuple[float, float, float, float] | None = None,
         since: str | None = None,
         min_score: float | None = None,
+        detected_since: str | None = None,
     ) -> list[FlaggedRow]:
         """Flagged views matching every filter given, ordered by segment then view.
 
         segment : a segment id. bbox : (min_x, min_y, max_x, max_y) in the index's CRS; a
-        view matches when one of its located regions' x/y boxes intersects it. since : ISO date or
-        date-time; views detected (published) at or after it. min_score : score ≥ this.
-        A view with no located region matches the box when its camera centre lies inside.
+        view matches when one of its located regions' x/y boxes intersects it. A view with
+        no located region matches the box when its camera centre lies inside.
+        since : ISO date or date-time; views whose image was taken at or after it. Where the
+        capture time is unknown (no EXIF date), the detection time stands in: an image is
+        detected after it is taken, so such a view may be listed though taken earlier, but a
+        change since the date is never left out.
+        detected_since : views detected (published) at or after it.
+        min_score : score ≥ this.
         """
         where: list[str] = []
         args: list[Any] = []
@@ -426,8 +523,11 @@ class ChangeIndex:
             where.append("f.segment_id = ?")
             args.append(segment)
         if since is not None:
-            where.append("f.detected_at >= ?")
+            where.append("coalesce(f.captured_at, f.detected_at) >= ?")
             args.append(parse_since(since))
+        if detected_since is not None:
+            where.append("f.detected_at >= ?")
+            args.append(parse_since(detected_since))
         if min_score is not None:
             where.append("f.score >= ?")
             args.append(float(min_score))
@@ -479,6 +579,7 @@ class ChangeIndex:
             r["detected_at"],
             center,
             regions,
+            r["captured_at"],
         )
 
     def segments(
@@ -583,12 +684,12 @@ def canonical_dump(path: str | Path) -> list[str]:
             lines.append("segment " + " ".join(_canon(x) for x in r))
         for r in q(
             "SELECT view, input_hash, params_hash, segment_id, status, error, flagged, "
-            "center_x, center_y, center_z FROM views"
+            "center_x, center_y, center_z, captured_at FROM views"
         ):
             lines.append("view " + " ".join(_canon(x) for x in r))
         for r in q(
             "SELECT view, segment_id, score, changed_fraction, n_regions, mask_path, "
-            "overlay_path FROM flagged"
+            "overlay_path, captured_at FROM flagged"
         ):
             vals = list(r)
             vals[5:7] = [None if p is None else Path(p).name for p in vals[5:7]]
@@ -672,6 +773,7 @@ def to_geojson(
             "changed_fraction": r.changed_fraction,
             "mask_path": r.mask_path,
             "detected_at": r.detected_at,
+            "captured_at": r.captured_at,
         }
         located = [g for g in r.regions if g.located]
         if not located and r.center is not None:

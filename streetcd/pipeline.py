@@ -31,15 +31,16 @@ import traceback
 import uuid
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from streetcd.errors import CorruptFileError, CRSMismatchError, InputError, MissingInputError
-from streetcd.index import ChangeIndex, RegionRecord, ViewRecord
+from streetcd.index import ChangeIndex, RegionRecord, ViewRecord, run_lock
 from streetcd.io.las import PointCloud
 from streetcd.params import DetectParams, params_to_dict
 from streetcd.segments import Segment, SegmentParams, plan_segments
@@ -55,14 +56,16 @@ SCHEDULER_ENV = "STREETCD_SCHEDULER"
 class PipelineParams:
     """Everything that decides a run's results, besides the inputs.
 
-    batch_size : views per Dask task (consecutive views of one segment share tiles).
+    batch_size : views per Dask task. Small batches balance the workers at the end of a
+        run; they cost little, since the batches of a segment that run on one worker share
+        its cloud and surfaces (:func:`segment_cloud`).
     min_changed_fraction : a view is flagged when more of its pixels than this changed.
     write_overlays : also write a JPEG of the image with the mask tinted red.
     """
 
     detect: DetectParams = field(default_factory=DetectParams)
     segments: SegmentParams = field(default_factory=SegmentParams)
-    batch_size: int = 8
+    batch_size: int = 4
     min_changed_fraction: float = 0.0
     write_overlays: bool = True
 
@@ -97,7 +100,15 @@ class ViewTask:
 
 @dataclass(frozen=True)
 class Batch:
-    """Consecutive views of one segment, processed by one Dask task."""
+    """Consecutive views of one segment, processed by one Dask task.
+
+    crop_views : the views whose clouds the segment's batches share: every view of the
+        segment still to do, and its neighbours. All batches of a segment carry the same
+        tuple, so a worker crops the segment once (:func:`segment_cloud`) and serves its
+        later batches, and the detector's surface cache, from that one cloud.
+    store_generation : the tile store's generation at planning, so a long-lived worker
+        never reads a store it opened before the last ingest.
+    """
 
     segment_id: str
     number: int
@@ -106,6 +117,8 @@ class Batch:
     out_dir: str
     params: PipelineParams
     params_hash: str
+    crop_views: tuple[View, ...] = ()
+    store_generation: int | None = None
 
     @property
     def key(self) -> str:
@@ -131,20 +144,36 @@ class Plan:
         return sum(len(b.tasks) for b in self.batches)
 
     def batches_of(self, segment_id: str) -> tuple[Batch, ...]:
-        return tuple(b for b in self.batches if b.segment_id == segment_id)
+        return self._by_segment.get(segment_id, ())
 
     @property
     def segments_todo(self) -> tuple[str, ...]:
-        seen: dict[str, None] = {}
+        """Ids of the segments with views to do, in plan (trajectory) order."""
+        return tuple(self._by_segment)
+
+    def rank(self, segment_id: str) -> int:
+        """Position of ``segment_id`` in :attr:`segments_todo`."""
+        return self._rank[segment_id]
+
+    @cached_property
+    def _rank(self) -> dict[str, int]:
+        return {s: k for k, s in enumerate(self._by_segment)}
+
+    @cached_property
+    def _by_segment(self) -> dict[str, tuple[Batch, ...]]:
+        # Built once: a city's plan has thousands of segments, asked for one by one.
+        out: dict[str, list[Batch]] = {}
         for b in self.batches:
-            seen.setdefault(b.segment_id)
-        return tuple(seen)
+            out.setdefault(b.segment_id, []).append(b)
+        return {k: tuple(v) for k, v in out.items()}
 
 
 @dataclass
 class RunSummary:
     """Counts and times of one run: ``detect_s`` the sum of per-view detector times,
-    ``view_s`` of whole per-view work (read, crop, detect, write), ``cpu_s`` its CPU time."""
+    ``view_s`` of whole per-view work (read, crop, detect, write), ``cpu_s`` its CPU time;
+    ``plan_s`` the planning, ``wait_s`` the time spent waiting for the Dask cluster after
+    planning, ``wall_s`` the whole run."""
 
     run_id: str
     n_views: int = 0
@@ -156,6 +185,8 @@ class RunSummary:
     detect_s: float = 0.0
     view_s: float = 0.0
     cpu_s: float = 0.0
+    plan_s: float = 0.0
+    wait_s: float = 0.0
     wall_s: float = 0.0
     failures: list[tuple[str, str]] = field(default_factory=list)
 
@@ -284,7 +315,8 @@ def plan_run(
     # Workers run elsewhere (another cwd, another machine with the same mounts): absolute paths.
     images, poses, store, out = (Path(p).resolve() for p in (images, poses, store, out))
     files = list_images(images)
-    pose_set = read_poses(poses, image_dir=images)
+    bad_rows: list[tuple[str, str]] = []
+    pose_set = read_poses(poses, image_dir=images, bad_rows=bad_rows)
     tile_store = TileStore.open(store)
     crs = crs_string(pose_set.crs) if pose_set.crs else None
     store_crs = crs_string(tile_store.crs) if tile_store.crs else None
@@ -292,11 +324,26 @@ def plan_run(
         raise CRSMismatchError(f"poses {poses} are in {crs}, tile store {store} in {store_crs}")
     crs = crs or store_crs
     reach_m = params.detect.max_range_m + 2.0  # crop buffer (1 m) and some slack
+    generation = tile_store.index.get("generation")
     phash = params.hash()
 
-    failed: list[ViewRecord] = []
+    posed_twice = _posed_twice([v.name for v in pose_set.views] + [n for n, _ in bad_rows])
+    failed = _bad_pose_records(bad_rows, posed_twice, files, phash)
+    failed += [
+        ViewRecord(
+            name,
+            _hash_text(f"{name}|posed {n} times|" + _file_hash_or(files.get(name), "missing")),
+            phash,
+            None,
+            "failed",
+            f"InputError: {poses}: view {name!r} has {n} poses; keep one",
+        )
+        for name, n in posed_twice.items()
+    ]
     views: list[View] = []
     for v in pose_set.views:
+        if v.name in posed_twice:
+            continue
         if v.image is not None and v.image.name in files:
             views.append(v)
         else:
@@ -312,6 +359,7 @@ def plan_run(
                 )
             )
     posed = {v.image.name for v in views if v.image is not None}
+    posed |= {r.view for r in failed}  # a bad or repeated pose row already failed its image
     for name, path in files.items():
         if name not in posed:
             failed.append(
@@ -356,6 +404,8 @@ def plan_run(
                     n_skipped += 1
                 else:
                     todo.append(ViewTask(v, tuple(by_name[n] for n in nbrs), seg.id, h))
+            crop_views = {t.view.name: t.view for t in todo}
+            crop_views.update({n.name: n for t in todo for n in t.neighbours})
             for k in range(0, len(todo), params.batch_size):
                 batches.append(
                     Batch(
@@ -366,6 +416,8 @@ def plan_run(
                         str(out),
                         params,
                         phash,
+                        tuple(crop_views[n] for n in sorted(crop_views)),
+                        generation,
                     )
                 )
         new_failed = [r for r in failed if not skip(r.view, r.input_hash)]
@@ -393,6 +445,37 @@ def plan_run(
     return plan
 
 
+def _bad_pose_records(
+    bad_rows: Sequence[tuple[str, str]],
+    posed_twice: dict[str, int],
+    files: dict[str, Path],
+    phash: str,
+) -> list[ViewRecord]:
+    """A failed record for each malformed pose row (its error names the file, line and
+    field). Its input hash covers the error and the image, so fixing the row, or the image,
+    makes the view due again. A name with more than one row fails as a repeat instead."""
+    out = []
+    for name, error in bad_rows:
+        if name in posed_twice:
+            continue
+        key = f"{name}|{error}|{_file_hash_or(files.get(name), 'missing')}"
+        out.append(ViewRecord(name, _hash_text(key), phash, None, "failed", f"InputError: {error}"))
+    return out
+
+
+def _posed_twice(names: Sequence[str]) -> dict[str, int]:
+    """{name: count} of the view names with more than one pose row (good or bad): which
+    pose is meant cannot be known, so such a view fails (rather than the whole run)."""
+    counts: dict[str, int] = {}
+    for name in names:
+        counts[name] = counts.get(name, 0) + 1
+    return {name: n for name, n in counts.items() if n > 1}
+
+
+def _file_hash_or(path: Path | None, default: str) -> str:
+    return file_hash(path) if path is not None else default
+
+
 def _xyz(a: np.ndarray) -> tuple[float, float, float]:
     return float(a[0]), float(a[1]), float(a[2])
 
@@ -405,19 +488,37 @@ def _hash_text(text: str) -> str:
 
 
 @lru_cache(maxsize=4)
-def _open_store(path: str) -> Any:
-    """One open TileStore per worker process and store, so its tile cache lives on."""
+def _open_store(path: str, generation: int | None = None) -> Any:
+    """One open TileStore per worker process, store and store generation (a new ingest
+    gives a new generation, so a long-lived worker reopens), so its tile cache lives on."""
     from streetcd.tiles import TileStore
 
     return TileStore.open(path)
 
 
+def warm_worker() -> None:
+    """Prepare a Dask worker process before its first batch (``client.run``): import the
+    detector's modules, so that the first batch does not pay for it, and keep OpenCV to the
+    worker's one core: a worker thread is a core, and OpenCV's own pool would make one
+    worker use two and two workers fight over them."""
+    import cv2
+
+    import streetcd.crop
+    import streetcd.detect  # noqa: F401
+
+    cv2.setNumThreads(1)
+
+
 class _ImageCache:
-    """The last few decoded images of this process (a view is its neighbours' neighbour)."""
+    """The last few decoded images of this process (a view is its neighbours' neighbour).
+
+    Entries are futures, so an image being decoded ahead (:meth:`prefetch`) is waited for,
+    not decoded twice; a decoding error is kept and raised to every caller.
+    """
 
     def __init__(self, size: int = 16):
         self.size = size
-        self.items: OrderedDict[tuple[str, float], np.ndarray] = OrderedDict()
+        self.items: OrderedDict[tuple[str, float], Future] = OrderedDict()
         self.lock = threading.Lock()
 
     def get(self, view: View) -> np.ndarray:
@@ -429,18 +530,73 @@ class _ImageCache:
         except FileNotFoundError:
             raise MissingInputError(f"image not found: {path}") from None
         with self.lock:
-            if key in self.items:
+            entry = self.items.get(key)
+            mine = entry is None
+            if entry is None:
+                entry = self.items[key] = Future()
+                while len(self.items) > self.size:
+                    self.items.popitem(last=False)
+            else:
                 self.items.move_to_end(key)
-                return self.items[key]
-        image = read_rgb(path, view)
-        with self.lock:
-            self.items[key] = image
-            while len(self.items) > self.size:
-                self.items.popitem(last=False)
-        return image
+        if mine:
+            try:
+                entry.set_result(read_rgb(path, view))
+            except Exception as exc:  # kept: the view that needs it records the error
+                entry.set_exception(exc)
+        return entry.result()
+
+    def prefetch(self, views: Sequence[View]) -> None:
+        """Decode ``views``' images in this process's I/O thread, ahead of their use."""
+        for v in views:
+            _io_thread().submit(self.get, v)
 
 
 _images = _ImageCache()
+
+
+@lru_cache(maxsize=1)
+def _io_thread() -> Any:
+    """This process's I/O thread: it decodes the next view's images and writes the last
+    view's mask and overlay while the detector runs (decoding and encoding run in OpenCV,
+    without the GIL), so a worker's core spends its time in the detector."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(1, thread_name_prefix="streetcd-io")
+
+
+EXIF_IFD = 0x8769
+DATE_TIME_ORIGINAL = 36867  # EXIF "YYYY:MM:DD HH:MM:SS", the camera's clock
+OFFSET_TIME_ORIGINAL = 36881  # EXIF 2.31 "+HH:MM", that clock's offset from UTC
+
+
+def capture_time(path: Path) -> str | None:
+    """When the image at ``path`` was taken, as an index timestamp (UTC), or None.
+
+    From EXIF ``DateTimeOriginal``, shifted by ``OffsetTimeOriginal`` where given; without
+    an offset the camera clock is taken as UTC (survey cameras run on GPS/UTC time). Pose
+    files give only a number of seconds whose epoch (GPS week, GPS, Unix) they do not
+    state, so they are not used. Reads the header only; never fails (None instead).
+    """
+    from datetime import UTC, datetime
+
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            exif = image.getexif().get_ifd(EXIF_IFD)
+        text = str(exif.get(DATE_TIME_ORIGINAL, "")).strip().rstrip("\x00")
+        if not text:
+            return None
+        when = datetime.strptime(text, "%Y:%m:%d %H:%M:%S")
+        offset = str(exif.get(OFFSET_TIME_ORIGINAL, "")).strip().rstrip("\x00")
+        if offset:
+            when = datetime.fromisoformat(when.isoformat() + offset)
+        else:
+            when = when.replace(tzinfo=UTC)
+    except (OSError, ValueError, SyntaxError) as exc:  # no EXIF, or a malformed date
+        log.debug("%s: no capture time: %s", path, exc)
+        return None
+    return when.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def read_rgb(path: Path, view: View) -> np.ndarray:
@@ -463,35 +619,126 @@ def read_rgb(path: Path, view: View) -> np.ndarray:
 def detect_batch(batch: Batch) -> list[ViewRecord]:
     """Run the detector on every view of ``batch``; one record per view, failures included.
 
-    Runs on a Dask worker: opens the tile store (cached per process), crops each view's
-    cloud, reads the images, writes masks under ``out/masks/<segment>/`` atomically.
+    Runs on a Dask worker: opens the tile store (cached per process), crops the segment's
+    cloud (cached per process), reads the images, writes masks under
+    ``out/masks/<segment>/`` atomically. A crop this batch had to make is work done for
+    its views: its time is shared among them in their ``total_s`` and ``cpu_s``.
     """
-    store = _open_store(batch.store)
-    cloud = _batch_cloud(batch, store)
-    return [_detect_one(batch, task, store, cloud) for task in batch.tasks]
+    store = _open_store(batch.store, batch.store_generation)
+    tasks = batch.tasks
+    _images.prefetch([tasks[0].view, *tasks[0].neighbours])
+    t0, c0 = time.perf_counter(), time.process_time()
+    cloud, fresh = segment_cloud(batch, store)
+    extra_s = time.perf_counter() - t0 if fresh else 0.0
+    extra_cpu = time.process_time() - c0 if fresh else 0.0
+    done = []
+    for k, task in enumerate(tasks):
+        if k + 1 < len(tasks):
+            _images.prefetch([tasks[k + 1].view, *tasks[k + 1].neighbours])
+        done.append(_detect_one(batch, task, store, cloud))
+    t0, c0 = time.perf_counter(), time.process_time()
+    records = [_written(record, writing) for record, writing in done]
+    extra_s += time.perf_counter() - t0  # what the writes added after the last view
+    extra_cpu += time.process_time() - c0
+    n = len(records)
+    return [
+        dataclasses.replace(
+            r, total_s=(r.total_s or 0.0) + extra_s / n, cpu_s=(r.cpu_s or 0.0) + extra_cpu / n
+        )
+        for r in records
+    ]
 
 
-def _batch_cloud(batch: Batch, store: Any) -> PointCloud | None:
-    """One crop for all views of the batch (and their neighbours), or None if it fails.
+def _written(record: ViewRecord, writing: Future | None) -> ViewRecord:
+    """``record`` once its mask is on disk; failed (not flagged) if it could not be
+    written, so the index never lists a mask that is not there."""
+    if writing is None:
+        return record
+    try:
+        writing.result()
+    except Exception as exc:
+        return dataclasses.replace(
+            record,
+            status="failed",
+            error=f"{type(exc).__name__}: cannot write the mask of {record.view}: {exc}",
+            flagged=False,
+            regions=(),
+            mask_path=None,
+            overlay_path=None,
+        )
+    return record
+
+
+class _CloudCache:
+    """The last few segment clouds of this process, keyed by store, generation, segment
+    and crop views. Two: the segment being worked on and the one before, which a batch
+    stolen late by this worker may still need."""
+
+    def __init__(self, size: int = 2):
+        self.size = size
+        self.items: OrderedDict[tuple, PointCloud | None] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: tuple) -> tuple[bool, PointCloud | None]:
+        with self.lock:
+            if key not in self.items:
+                return False, None
+            self.items.move_to_end(key)
+            return True, self.items[key]
+
+    def put(self, key: tuple, cloud: PointCloud | None) -> None:
+        with self.lock:
+            self.items[key] = cloud
+            while len(self.items) > self.size:
+                self.items.popitem(last=False)
+
+
+_clouds = _CloudCache()
+
+
+def segment_cloud(batch: Batch, store: Any) -> tuple[PointCloud | None, bool]:
+    """One crop for the views of the batch's segment (and their neighbours), shared by all
+    of its batches that run in this process: (cloud or None if the crop failed, whether it
+    was made now rather than found).
 
     Sharing one cloud object lets the detector's surface cache build each view's surface
-    once, though it serves as the view and as a neighbour of up to three others. On failure
-    each view crops on its own, so the error is recorded against the views it concerns.
+    once, though it serves as the view and as a neighbour of up to three others, across
+    batch boundaries too. On failure each view crops on its own, so the error is recorded
+    against the views it concerns.
     """
     from streetcd.crop import crop_for_views
 
+    views = batch.crop_views or _batch_views(batch)
+    key = (
+        batch.store,
+        batch.store_generation,
+        batch.segment_id,
+        batch.params.detect.max_range_m,
+        tuple(v.name for v in views),
+    )
+    found, cloud = _clouds.get(key)
+    if found:
+        return cloud, False
+    try:
+        cloud = crop_for_views(store, list(views), max_range_m=batch.params.detect.max_range_m)
+    except Exception as exc:  # recorded per view by _detect_one's own crop
+        log.warning("segment %s: shared crop failed, cropping per view: %s", batch.segment_id, exc)
+        cloud = None
+    _clouds.put(key, cloud)
+    return cloud, True
+
+
+def _batch_views(batch: Batch) -> tuple[View, ...]:
     views = {t.view.name: t.view for t in batch.tasks}
     views.update({n.name: n for t in batch.tasks for n in t.neighbours})
-    try:
-        return crop_for_views(
-            store, list(views.values()), max_range_m=batch.params.detect.max_range_m
-        )
-    except Exception as exc:  # recorded per view by _detect_one's own crop
-        log.warning("batch %s: shared crop failed, cropping per view: %s", batch.key, exc)
-        return None
+    return tuple(views[n] for n in sorted(views))
 
 
-def _detect_one(batch: Batch, task: ViewTask, store: Any, shared: PointCloud | None) -> ViewRecord:
+def _detect_one(
+    batch: Batch, task: ViewTask, store: Any, shared: PointCloud | None
+) -> tuple[ViewRecord, Future | None]:
+    """Detect one view: its record, and the future of its outputs being written (None when
+    there are none) in the I/O thread; the record is good once that future is."""
     from streetcd.crop import crop_for_view
     from streetcd.detect import detect_view
 
@@ -504,6 +751,8 @@ def _detect_one(batch: Batch, task: ViewTask, store: Any, shared: PointCloud | N
         center=_xyz(view.center),
     )
     t0, c0 = time.perf_counter(), time.process_time()  # CPU time: the process, one view at a time
+    if view.image is not None:
+        base["captured_at"] = capture_time(Path(view.image))
     try:
         image = _images.get(view)
         neighbours = []
@@ -522,11 +771,13 @@ def _detect_one(batch: Batch, task: ViewTask, store: Any, shared: PointCloud | N
         t2 = time.perf_counter()
         flagged = bool(result.changed_fraction > p.min_changed_fraction)
         mask_path = overlay_path = None
+        writing = None
         regions: tuple[RegionRecord, ...] = ()
         if flagged:
-            mask_path, overlay_path = _write_outputs(batch, task, image, result.mask)
+            mask_path, overlay_path = _output_paths(batch, task)
+            writing = _io_thread().submit(_write_outputs, batch, task, image, result.mask)
             regions = tuple(_region_record(g, result.origin) for g in result.regions)
-        return ViewRecord(
+        record = ViewRecord(
             **base,
             status="done",
             flagged=flagged,
@@ -539,17 +790,19 @@ def _detect_one(batch: Batch, task: ViewTask, store: Any, shared: PointCloud | N
             total_s=time.perf_counter() - t0,
             cpu_s=time.process_time() - c0,
         )
+        return record, writing
     except Exception as exc:  # a bad view fails alone; the run goes on
         if not isinstance(exc, (InputError, MissingInputError, RuntimeError)):
             log.error("view %s failed unexpectedly:\n%s", view.name, traceback.format_exc())
         message = str(exc) if str(exc) else type(exc).__name__
-        return ViewRecord(
+        failed = ViewRecord(
             **base,
             status="failed",
             error=f"{type(exc).__name__}: {message}",
             total_s=time.perf_counter() - t0,
             cpu_s=time.process_time() - c0,
         )
+        return failed, None
 
 
 def _region_record(g: Any, origin: np.ndarray) -> RegionRecord:
@@ -565,23 +818,27 @@ def _region_record(g: Any, origin: np.ndarray) -> RegionRecord:
     )
 
 
-def _write_outputs(
-    batch: Batch, task: ViewTask, image: np.ndarray, mask: np.ndarray
-) -> tuple[str, str | None]:
-    """Write ``mask`` (H, W) bool as a 0/255 PNG, and the overlay JPEG, atomically."""
-    import cv2
-
+def _output_paths(batch: Batch, task: ViewTask) -> tuple[str, str | None]:
+    """Where the mask PNG and the overlay JPEG (None without overlays) of a view go."""
     stem = Path(task.view.name).stem
     folder = Path(batch.out_dir)
     mask_path = folder / "masks" / task.segment_id / f"{stem}.mask.png"
-    _atomic_write(mask_path, _encode(".png", mask.astype(np.uint8) * 255))
     if not batch.params.write_overlays:
         return str(mask_path), None
+    return str(mask_path), str(folder / "overlays" / task.segment_id / f"{stem}.overlay.jpg")
+
+
+def _write_outputs(batch: Batch, task: ViewTask, image: np.ndarray, mask: np.ndarray) -> None:
+    """Write ``mask`` (H, W) bool as a 0/255 PNG, and the overlay JPEG, atomically."""
+    import cv2
+
+    mask_path, overlay_path = _output_paths(batch, task)
+    _atomic_write(Path(mask_path), _encode(".png", mask.astype(np.uint8) * 255))
+    if overlay_path is None:
+        return
     tint = image.copy()
     tint[mask] = (0.5 * tint[mask] + 0.5 * np.array([255, 0, 0])).astype(np.uint8)
-    overlay_path = folder / "overlays" / task.segment_id / f"{stem}.overlay.jpg"
-    _atomic_write(overlay_path, _encode(".jpg", cv2.cvtColor(tint, cv2.COLOR_RGB2BGR)))
-    return str(mask_path), str(overlay_path)
+    _atomic_write(Path(overlay_path), _encode(".jpg", cv2.cvtColor(tint, cv2.COLOR_RGB2BGR)))
 
 
 def _encode(ext: str, array: np.ndarray) -> bytes:
@@ -633,12 +890,57 @@ def dask_client(
         yield client
 
 
-def segment_workers(client: Any, segment_ids: Sequence[str]) -> dict[str, str | None]:
-    """Assign segments round-robin to the workers alive now (a loose hint, see below)."""
+@contextlib.contextmanager
+def dask_client_soon(
+    scheduler: str | None = None, workers: int = 2, threads_per_worker: int = 1
+) -> Iterator[Future]:
+    """:func:`dask_client` started in a background thread, its workers warmed up
+    (:func:`warm_worker`): yields a Future of the client, closed on leaving.
+
+    Starting a LocalCluster and importing the detector in its workers takes seconds of
+    CPU in other processes; the caller plans the run meanwhile. A run with nothing to do
+    pays for a cluster it does not use, which is cheaper than making every run wait.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    with contextlib.ExitStack() as stack:
+
+        def start() -> Any:
+            client = stack.enter_context(dask_client(scheduler, workers, threads_per_worker))
+            client.run(warm_worker)
+            return client
+
+        # The pool is left first: it waits for a start in progress before the stack closes it.
+        with ThreadPoolExecutor(1, thread_name_prefix="streetcd-dask-start") as pool:
+            yield pool.submit(start)
+
+
+def segment_workers(
+    client: Any, segment_ids: Sequence[str], sizes: Sequence[int] | None = None
+) -> dict[str, str | None]:
+    """Assign segments to the workers alive now (a loose hint, see :func:`detect_segment`),
+    largest first to the least loaded worker, so that workers get about the same number
+    of views (``sizes``, default one per segment) and finish together."""
     workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
     if not workers:
         return {s: None for s in segment_ids}
-    return {s: workers[i % len(workers)] for i, s in enumerate(segment_ids)}
+    sizes = [1] * len(segment_ids) if sizes is None else list(sizes)
+    load = dict.fromkeys(workers, 0)
+    out: dict[str, str | None] = {}
+    for k in sorted(range(len(segment_ids)), key=lambda k: (-sizes[k], k)):
+        worker = min(workers, key=lambda w: (load[w], w))
+        out[segment_ids[k]] = worker
+        load[worker] += sizes[k]
+    return out
+
+
+def plan_workers(client: Any, plan: Plan) -> dict[str, str | None]:
+    """:func:`segment_workers` for the segments of ``plan`` still to do, by views to do."""
+    segs = plan.segments_todo
+    sizes = {s: 0 for s in segs}
+    for b in plan.batches:
+        sizes[b.segment_id] += len(b.tasks)
+    return segment_workers(client, segs, [sizes[s] for s in segs])
 
 
 def detect_segment(
@@ -646,13 +948,16 @@ def detect_segment(
 ) -> RunSummary:
     """Submit one segment's batches and publish each in one transaction as it completes.
 
-    ``worker`` is a loose restriction: the segment's batches prefer that worker (its tile
-    cache and image cache hold the segment's data) but Dask may move them, and will when
-    the worker dies.
+    ``worker`` is a loose restriction: the segment's batches prefer that worker (its
+    segment cloud, tile cache and image cache hold the segment's data) but Dask may move
+    them, and will when the worker dies. Segments earlier in the plan get a higher priority,
+    so a worker finishes one segment before it starts the next, whatever the order in which
+    segments are submitted.
     """
     from distributed import as_completed
 
     batches = plan.batches_of(segment_id)
+    priority = -plan.rank(segment_id)  # earlier segments first
     futures = {
         client.submit(
             detect_batch,
@@ -661,6 +966,7 @@ def detect_segment(
             pure=False,
             workers=[worker] if worker else None,
             allow_other_workers=True,
+            priority=priority,
         ): b
         for b in batches
     }
@@ -725,17 +1031,23 @@ def run_pipeline(
     *,
     retry_failed: bool = False,
 ) -> RunSummary:
-    """One whole run without Prefect: plan, detect every segment on ``client``, publish."""
+    """One whole run without Prefect: plan, detect every segment on ``client``, publish.
+
+    Holds the index's run lock throughout (:func:`streetcd.index.run_lock`): IndexBusyError
+    at once when another run holds it. The steps below it (plan_run, detect_segment,
+    finish_run) leave locking to their caller.
+    """
     from concurrent.futures import ThreadPoolExecutor
 
     t0 = time.perf_counter()
-    plan = plan_run(images, poses, store, index, out, params, retry_failed=retry_failed)
-    summary = new_summary(plan)
-    segs = plan.segments_todo
-    hint = segment_workers(client, segs)
-    with ThreadPoolExecutor(max_workers=max(1, min(8, len(segs)))) as pool:
-        for part in pool.map(lambda s: detect_segment(client, plan, s, hint[s]), segs):
-            summary.merge(part)
-    finish_run(plan, summary)
+    with run_lock(index, "streetcd.pipeline.run_pipeline"):
+        plan = plan_run(images, poses, store, index, out, params, retry_failed=retry_failed)
+        summary = new_summary(plan)
+        segs = plan.segments_todo
+        hint = plan_workers(client, plan)
+        with ThreadPoolExecutor(max_workers=max(1, min(8, len(segs)))) as pool:
+            for part in pool.map(lambda s: detect_segment(client, plan, s, hint[s]), segs):
+                summary.merge(part)
+        finish_run(plan, summary)
     summary.wall_s = time.perf_counter() - t0
     return summary

@@ -211,3 +211,24 @@ def test_demo_runs_the_whole_workflow_and_lists_what_changed(prefect_api_url, tm
     assert counts["views"] == 6 and counts["failed"] == 0
     assert f"flagged views: {len(rows)}" in out.output
     assert all(r.view in out.output for r in rows)
+
+
+def test_cli_run_on_an_index_in_use_fails_at_once_naming_the_holder(
+    small_city, prefect_api_url, tmp_path
+):
+    from click.testing import CliRunner
+
+    from streetcd.cli.run import run
+    from streetcd.index import run_lock
+
+    index = tmp_path / "change_index.sqlite"
+    args = ["--images", str(small_city.images), "--poses", str(small_city.poses)]
+    args += ["--store", str(small_city.store), "--index", str(index), "--out", str(tmp_path)]
+    with run_lock(index, "last night's run"):
+        result = CliRunner().invoke(run, args)
+    assert result.exit_code == 1, result.output
+    assert f"change index {index} is in use by another run (last night's run, process" in (
+        result.output
+    )
+    assert f"{os.getpid()} on" in result.output and "Nothing was changed" in result.output
+    assert not index.exists()

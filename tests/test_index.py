@@ -1,5 +1,6 @@
 """The change index: schema, idempotent batch writes, rollback, R*Trees, canonical dumps."""
 
+import os
 import sqlite3
 
 import numpy as np
@@ -190,3 +191,78 @@ def test_opening_what_is_not_an_index_says_so(tmp_path):
     (tmp_path / "junk.sqlite").write_bytes(b"not a database at all" * 100)
     with pytest.raises(InputError, match="junk.sqlite"):
         ChangeIndex(tmp_path / "junk.sqlite")
+
+
+# --- the run lock ---------------------------------------------------------------------------
+
+HOLD_LOCK = """
+import sys, time
+from streetcd.index import run_lock
+with run_lock(sys.argv[1], "the holder of this test"):
+    print("locked", flush=True)
+    time.sleep(120)
+"""
+
+
+def test_a_second_run_fails_fast_naming_the_holder_and_a_killed_holder_leaves_no_lock(tmp_path):
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    from streetcd.index import IndexBusyError, lock_path, run_lock
+
+    index = tmp_path / "change_index.sqlite"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_LOCK, str(index)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        with pytest.raises(IndexBusyError) as caught, run_lock(index):
+            pass
+        message = str(caught.value)
+        assert str(index) in message and "the holder of this test" in message
+        assert f"process {holder.pid} on {socket.gethostname()}" in message
+        assert isinstance(caught.value, RuntimeError)
+    finally:
+        os.kill(holder.pid, signal.SIGKILL)  # no clean-up in the holder: the kernel frees it
+        holder.wait(timeout=30)
+        holder.stdout.close()
+    with run_lock(index, "the next run") as path:
+        assert path == lock_path(index)
+        assert "the next run" in path.read_text()
+    assert path.read_text() == ""  # released: nothing claims to hold it
+
+
+def test_the_lock_also_keeps_out_a_second_run_of_the_same_process(tmp_path):
+    from streetcd.index import IndexBusyError, run_lock
+
+    index = tmp_path / "change_index.sqlite"
+    with run_lock(index, "first"):
+        with pytest.raises(IndexBusyError, match=f"first, process {os.getpid()}"), run_lock(index):
+            pass
+    with run_lock(index):
+        pass
+
+
+def test_an_index_of_schema_2_is_upgraded_in_place(tmp_path):
+    path = tmp_path / "change_index.sqlite"
+    with ChangeIndex(path) as idx:
+        idx.publish("r", [ViewRecord("a.jpg", "h", "p", None, "done", flagged=True, score=0.5)])
+    # What a schema-2 index looked like: no capture times.
+    con = sqlite3.connect(path)
+    con.executescript(
+        "DROP INDEX flagged_when; ALTER TABLE flagged DROP COLUMN captured_at;"
+        " ALTER TABLE views DROP COLUMN captured_at;"
+        " UPDATE meta SET value = '2' WHERE key = 'schema_version';"
+    )
+    con.close()
+    with ChangeIndex(path) as idx:
+        (row,) = idx.query(since="2000-01-01")
+        assert row.view == "a.jpg" and row.captured_at is None
+        idx.publish(
+            "r", [ViewRecord("b.jpg", "h", "p", None, "done", captured_at="2026-01-02T03:04:05Z")]
+        )
+        got = idx.conn.execute("SELECT captured_at FROM views WHERE view = 'b.jpg'").fetchone()
+        assert got[0] == "2026-01-02T03:04:05Z"

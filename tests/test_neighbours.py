@@ -59,3 +59,18 @@ def test_views_looking_away_or_far_away_are_not_neighbours():
 def test_at_most_n_are_returned(n):
     views = strip(9, 1.0)
     assert len(select_neighbours(views[4], views, n=n)) == min(n, 8)
+
+
+def test_overlaps_in_one_batch_equal_overlap_pair_by_pair():
+    from dataclasses import replace
+
+    from streetcd.neighbours import overlaps
+
+    views = strip(6, 3.0) + [view("back.jpg", 4.0, heading=-1.0), view("side.jpg", 5.0, y=8.0)]
+    bent = Intrinsics(640, 360, 420.0, 430.0, 319.5, 179.5, (-0.2, 0.05, 0.001, -0.002, 0.0))
+    views.append(replace(view("bent.jpg", 2.5), intrinsics=bent))  # distortion, other size
+    for p in views:
+        batch = overlaps(p, views)
+        assert batch.tolist() == [overlap(p, q) for q in views]  # exactly, not approximately
+        assert batch[views.index(p)] == 1.0
+    assert overlaps(views[0], []).shape == (0,)

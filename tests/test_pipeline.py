@@ -79,13 +79,17 @@ def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_p
     images = tmp_path / "images"
     shutil.copytree(small_city.images, images)
     names = sorted(p.name for p in images.iterdir())
-    corrupt, lifted, unposed = names[1], names[2], names[3]
+    corrupt, lifted, unposed, malformed, twice = names[1:6]
     (images / corrupt).write_bytes((images / corrupt).read_bytes()[:200])  # truncated JPEG
-    lines = []
+    lines, malformed_line = [], 0
     for line in small_city.poses.read_text().splitlines():
         fields = line.split(",")
         if fields[0] == lifted:  # a bad pose: 1 km up in the air, it sees no reference point
             fields[3] = str(float(fields[3]) + 1000.0)
+        if fields[0] == malformed:  # a row that cannot be read: it fails this view only
+            fields[5], malformed_line = "north-ish", len(lines) + 1
+        if fields[0] == twice:  # two poses for one image: which one is meant?
+            lines.append(",".join(fields))
         if fields[0] != unposed:
             lines.append(",".join(fields))
     poses = tmp_path / "poses.csv"
@@ -95,13 +99,58 @@ def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_p
         cluster, images, poses, small_city.store, index, tmp_path, PARAMS
     )
     errors = dict(summary.failures)
-    assert set(errors) == {corrupt, lifted, unposed}
+    assert set(errors) == {corrupt, lifted, unposed, malformed, twice}
     assert corrupt in errors[corrupt] and "CorruptFileError" in errors[corrupt]
     assert lifted in errors[lifted] and "EmptyViewError" in errors[lifted]
     assert f"no pose for image {unposed}" in errors[unposed]
-    assert summary.n_done == len(names) - 3
+    assert errors[malformed] == (
+        f"InputError: {poses}:{malformed_line}: field 'phi' is not a number: 'north-ish'"
+    )
+    assert str(poses) in errors[twice] and f"{twice!r} has 2 poses" in errors[twice]
+    assert summary.n_done == len(names) - 5
     with ChangeIndex(index, create=False) as idx:
         assert dict(idx.failures()) == errors
+        assert idx.conn.execute("SELECT status FROM runs").fetchone()[0] == "finished"
+    again = pipeline.plan_run(images, poses, small_city.store, index, tmp_path, PARAMS)
+    assert again.n_todo == 0 and again.n_skipped == len(names)  # failures are not retried
+
+    # Fixing the row makes that view, and only it, due again.
+    poses.write_text(poses.read_text().replace("north-ish", "0.0"))
+    fixed = pipeline.plan_run(images, poses, small_city.store, index, tmp_path, PARAMS)
+    assert [t.view.name for b in fixed.batches for t in b.tasks] == [malformed]
+
+
+def test_a_run_on_a_locked_index_fails_fast_and_changes_nothing(small_city, cluster, tmp_path):
+    from streetcd.index import IndexBusyError, run_lock
+
+    index = tmp_path / "change_index.sqlite"
+    with run_lock(index, "a run that is still going"):
+        t0 = time.perf_counter()
+        with pytest.raises(IndexBusyError, match="a run that is still going, process"):
+            pipeline.run_pipeline(
+                cluster, small_city.images, small_city.poses, small_city.store, index, tmp_path
+            )
+        assert time.perf_counter() - t0 < 5
+    assert not index.exists()
+
+
+def test_the_capture_time_comes_from_exif_in_utc(tmp_path):
+    from PIL import Image
+
+    image = Image.new("RGB", (8, 8))
+    exif = Image.Exif()
+    sub = exif.get_ifd(0x8769)
+    sub[36867] = "2026:11:21 23:30:00"  # DateTimeOriginal
+    sub[36881] = "+02:00"  # OffsetTimeOriginal
+    image.save(tmp_path / "zoned.jpg", exif=exif)
+    del sub[36881]
+    image.save(tmp_path / "utc.jpg", exif=exif)
+    image.save(tmp_path / "none.jpg")
+    (tmp_path / "junk.jpg").write_bytes(b"not a jpeg")
+    assert pipeline.capture_time(tmp_path / "zoned.jpg") == "2026-11-21T21:30:00Z"
+    assert pipeline.capture_time(tmp_path / "utc.jpg") == "2026-11-21T23:30:00Z"
+    assert pipeline.capture_time(tmp_path / "none.jpg") is None
+    assert pipeline.capture_time(tmp_path / "junk.jpg") is None
 
 
 def _start(cmd: list[str], log: Path) -> subprocess.Popen:

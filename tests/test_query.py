@@ -16,12 +16,17 @@ from streetcd.segments import SegmentParams, plan_segments
 
 CRS = "EPSG:32648"
 DATES = ["2026-11-01T02:00:00Z", "2026-11-10T03:30:00Z", "2026-11-20T01:15:00Z"]
+# Capture times: each one a little before a detection date, so that a view taken before a
+# date but detected after it tells the two filters apart.
+TAKEN = ["2026-10-30T09:00:00Z", "2026-11-09T10:00:00Z", "2026-11-19T08:00:00Z"]
 
 
 @pytest.fixture(scope="module")
 def index_path(tmp_path_factory):
-    """60 views on two streets, a third flagged, with random regions and detection dates."""
+    """60 views on two streets, a third flagged, with random regions, detection dates and
+    capture dates (unknown for some)."""
     rng = np.random.default_rng(11)
+    taken = np.random.default_rng(12)
     views = street(30, step_m=5.0) + street(
         30, step_m=5.0, start=(E0 + 400, N0), along=(0, 1), prefix="b", t0=100
     )
@@ -66,6 +71,7 @@ def index_path(tmp_path_factory):
                     regions=tuple(regions),
                     mask_path=f"/m/{v.stem}.png",
                     center=c,
+                    captured_at=TAKEN[int(taken.integers(0, 3))] if taken.random() < 0.6 else None,
                 )
             idx.publish("r", [rec])
         for view in [r.view for r in idx.query()]:
@@ -76,7 +82,7 @@ def index_path(tmp_path_factory):
     return path
 
 
-def brute(rows, segment=None, bbox=None, since=None, min_score=None):
+def brute(rows, segment=None, bbox=None, since=None, min_score=None, detected_since=None):
     def meets(g):
         return (
             g.bbox_max[0] >= bbox[0]
@@ -89,7 +95,9 @@ def brute(rows, segment=None, bbox=None, since=None, min_score=None):
     for r in rows:
         if segment is not None and r.segment_id != segment:
             continue
-        if since is not None and r.detected_at < since:
+        if since is not None and (r.captured_at or r.detected_at) < since:
+            continue
+        if detected_since is not None and r.detected_at < detected_since:
             continue
         if min_score is not None and r.score < min_score:
             continue
@@ -110,6 +118,8 @@ def test_the_fixture_has_every_case(index_path):
     assert 10 < len(rows) < 40
     assert any(not r.regions for r in rows) and any(len(r.regions) > 1 for r in rows)
     assert any(not g.located for r in rows for g in r.regions)
+    assert any(r.captured_at is None for r in rows)
+    assert any(r.captured_at is not None and r.captured_at < r.detected_at for r in rows)
 
 
 @pytest.mark.parametrize("case", range(40))
@@ -128,8 +138,23 @@ def test_filters_match_brute_force(index_path, case):
             kw["since"] = DATES[int(rng.integers(0, 3))]
         if rng.random() < 0.5:
             kw["min_score"] = float(rng.uniform(0.4, 1.0))
+        if rng.random() < 0.3:
+            kw["detected_since"] = DATES[int(rng.integers(0, 3))]
         got = idx.query(**kw)
     assert [r.view for r in got] == [r.view for r in brute(rows, **kw)]
+
+
+def test_since_is_the_capture_date_where_known_else_the_detection_date(index_path):
+    with ChangeIndex(index_path, create=False) as idx:
+        rows = idx.query()
+        since = idx.query(since=DATES[1])
+        detected = idx.query(detected_since=DATES[1])
+    # Taken on 11-09, detected on 11-10 or later: a change since 11-10 it is not.
+    taken_before = {r.view for r in rows if r.captured_at == TAKEN[1] and r.detected_at >= DATES[1]}
+    assert taken_before and not taken_before & {r.view for r in since}
+    assert taken_before <= {r.view for r in detected}
+    unknown = {r.view for r in rows if r.captured_at is None and r.detected_at >= DATES[1]}
+    assert unknown and unknown <= {r.view for r in since}  # never left out
 
 
 def test_since_takes_plain_dates_and_rejects_junk(index_path):

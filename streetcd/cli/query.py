@@ -71,12 +71,19 @@ def run_query(
     min_score: float | None = None,
     fmt: str = "table",
     native_crs: bool = False,
+    detected_since: str | None = None,
 ) -> str:
     """The text ``streetcd query`` prints."""
     from streetcd.index import ChangeIndex, to_geojson
 
     with ChangeIndex(index, create=False) as idx:
-        rows = idx.query(segment=segment, bbox=bbox, since=since, min_score=min_score)
+        rows = idx.query(
+            segment=segment,
+            bbox=bbox,
+            since=since,
+            min_score=min_score,
+            detected_since=detected_since,
+        )
         segments = idx.segments(ids=sorted({r.segment_id for r in rows if r.segment_id}))
         if fmt == "table":
             return segments_table(rows, segments) + "\n\n" + rows_as_table(rows)
@@ -98,7 +105,14 @@ def run_query(
     "--bbox",
     help="minx,miny,maxx,maxy in the index's CRS: views with a change region meeting the box.",
 )
-@click.option("--since", help="ISO date or date-time (UTC if no zone): views flagged since then.")
+@click.option(
+    "--since",
+    help="ISO date or date-time (UTC if no zone): views whose image was taken since then (EXIF "
+    "date; the detection date where the image has none).",
+)
+@click.option(
+    "--detected-since", help="ISO date or date-time: views detected (published) since then."
+)
 @click.option("--min-score", type=float, help="Only views scoring at least this (0–1).")
 @click.option(
     "--format",
@@ -119,6 +133,7 @@ def query(
     bbox: str | None,
     since: str | None,
     min_score: float | None,
+    detected_since: str | None,
     fmt: str,
     native_crs: bool,
     output: str | None,
@@ -133,6 +148,7 @@ def query(
             min_score=min_score,
             fmt=fmt,
             native_crs=native_crs,
+            detected_since=detected_since,
         )
     except StreetcdError as exc:
         raise click.ClickException(str(exc)) from None

@@ -143,7 +143,7 @@ def _default(path: str | None, out: str, name: str) -> str:
     type=click.Path(exists=True, dir_okay=False),
     help="Detector parameters (YAML, configs/default.yaml layout).",
 )
-@click.option("--batch-size", type=int, default=8, show_default=True, help="Views per Dask task.")
+@click.option("--batch-size", type=int, default=4, show_default=True, help="Views per Dask task.")
 @click.option("--retry-failed", is_flag=True, help="Process again views that failed before.")
 @click.option("-v", "--verbose", is_flag=True, help="Show Prefect's INFO logs.")
 def run(

@@ -135,11 +135,17 @@ def read_colmap_cameras_text(path: Path) -> dict[int, Intrinsics]:
     return cameras
 
 
-def read_colmap_text(path: str | Path, image_dir: str | Path | None = None) -> PoseSet:
+def read_colmap_text(
+    path: str | Path,
+    image_dir: str | Path | None = None,
+    *,
+    bad_rows: list[tuple[str, str]] | None = None,
+) -> PoseSet:
     """Read a COLMAP text model: ``path`` is ``images.txt`` or the folder holding it.
 
     ``cameras.txt`` must lie beside ``images.txt``. Image paths are resolved against
     ``image_dir`` when given. Returns views in file order; ``time`` is the file order.
+    bad_rows : as :func:`read_opk_csv`, for malformed image lines.
     """
     path = Path(path)
     images_txt = path / "images.txt" if path.is_dir() else path
@@ -157,24 +163,40 @@ def read_colmap_text(path: str | Path, image_dir: str | Path | None = None) -> P
         parts = line.split()
         if len(parts) != 10:
             continue  # a POINTS2D line
-        fields = ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")
-        q_t = [_finite(v, images_txt, number, f) for v, f in zip(parts[1:8], fields, strict=True)]
-        camera_id = int(_finite(parts[8], images_txt, number, "CAMERA_ID"))
-        if camera_id not in cameras:
-            raise InputError(
-                f"{images_txt}:{number}: field 'CAMERA_ID' = {camera_id} is not in {cameras_txt}"
-            )
-        name = parts[9]
-        if np.linalg.norm(q_t[:4]) < 1e-12:
-            raise InputError(
-                f"{images_txt}:{number}: field 'QW..QZ' of {name} is a zero quaternion"
-            )
-        pose = Pose(quaternion_to_rotation(np.array(q_t[:4])), np.array(q_t[4:]))
-        image = Path(image_dir) / name if image_dir is not None else None
-        views.append(View(name, cameras[camera_id], pose, image, float(len(views))))
-    if not views:
+        try:
+            views.append(_colmap_line(parts, images_txt, number, cameras, image_dir, len(views)))
+        except InputError as exc:
+            if bad_rows is None:
+                raise
+            bad_rows.append((parts[9], str(exc)))
+    if not views and not bad_rows:
         raise InputError(f"{images_txt}: no image poses found")
     return PoseSet(tuple(views), _crs_comment(images_txt), images_txt)
+
+
+def _colmap_line(
+    parts: list[str],
+    images_txt: Path,
+    number: int,
+    cameras: dict[int, Intrinsics],
+    image_dir: str | Path | None,
+    order: int,
+) -> View:
+    """One image line of ``images.txt`` as a View; InputError naming the file, line, field."""
+    cameras_txt = images_txt.with_name("cameras.txt")
+    fields = ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")
+    q_t = [_finite(v, images_txt, number, f) for v, f in zip(parts[1:8], fields, strict=True)]
+    camera_id = int(_finite(parts[8], images_txt, number, "CAMERA_ID"))
+    if camera_id not in cameras:
+        raise InputError(
+            f"{images_txt}:{number}: field 'CAMERA_ID' = {camera_id} is not in {cameras_txt}"
+        )
+    name = parts[9]
+    if np.linalg.norm(q_t[:4]) < 1e-12:
+        raise InputError(f"{images_txt}:{number}: field 'QW..QZ' of {name} is a zero quaternion")
+    pose = Pose(quaternion_to_rotation(np.array(q_t[:4])), np.array(q_t[4:]))
+    image = Path(image_dir) / name if image_dir is not None else None
+    return View(name, cameras[camera_id], pose, image, float(order))
 
 
 def _colmap_camera_params(intr: Intrinsics) -> tuple[str, list[float]]:
@@ -329,8 +351,17 @@ def write_opk_csv(path: str | Path, views: Iterable[View], crs: str) -> Path:
     return path
 
 
-def read_opk_csv(path: str | Path, image_dir: str | Path | None = None) -> PoseSet:
-    """Read an OPK CSV written by :func:`write_opk_csv` or by hand (see module docstring)."""
+def read_opk_csv(
+    path: str | Path,
+    image_dir: str | Path | None = None,
+    *,
+    bad_rows: list[tuple[str, str]] | None = None,
+) -> PoseSet:
+    """Read an OPK CSV written by :func:`write_opk_csv` or by hand (see module docstring).
+
+    bad_rows : when given, a malformed row does not stop the reading: ``(name, error)`` is
+    appended (name is the row's image name, or ``file:line`` where it has none).
+    """
     path = Path(path)
     if not path.exists():
         raise MissingInputError(f"pose file not found: {path}")
@@ -352,46 +383,71 @@ def read_opk_csv(path: str | Path, image_dir: str | Path | None = None) -> PoseS
     views: list[View] = []
     for number, row in enumerate(reader, start=2 + sum(1 for x in lines if x.startswith("#"))):
         name = (row.get("name") or "").strip()
-        if not name:
-            raise InputError(f"{path}:{number}: field 'name' is empty")
-        num = {f: _finite(row[f] or "", path, number, f) for f in OPK_FIELDS[1:-1]}
-        time = row.get("time")
-        R = opk_to_rotation(num["omega"], num["phi"], num["kappa"])
         try:
-            intr = Intrinsics(
-                int(num["width"]),
-                int(num["height"]),
-                num["fx"],
-                num["fy"],
-                num["cx"],
-                num["cy"],
-                (num["k1"], num["k2"], num["p1"], num["p2"], num["k3"]),
-            )
+            views.append(_opk_row(row, name, path, number, image_dir, len(views)))
         except InputError as exc:
-            raise InputError(f"{path}:{number}: {exc}") from None
-        center = np.array([num["x"], num["y"], num["z"]])
-        image = Path(image_dir) / name if image_dir is not None else None
-        t = _finite(time, path, number, "time") if time else float(len(views))
-        views.append(View(name, intr, Pose.from_center(R, center), image, t))
-    if not views:
+            if bad_rows is None:
+                raise
+            bad_rows.append((name or f"{path.name}:{number}", str(exc)))
+    if not views and not bad_rows:
         raise InputError(f"{path}: no image rows")
     return PoseSet(tuple(views), crs, path)
 
 
-def read_poses(path: str | Path, image_dir: str | Path | None = None) -> PoseSet:
+def _opk_row(
+    row: dict[str, str | None],
+    name: str,
+    path: Path,
+    number: int,
+    image_dir: str | Path | None,
+    order: int,
+) -> View:
+    """One OPK CSV row as a View; InputError naming the file, line and field."""
+    if not name:
+        raise InputError(f"{path}:{number}: field 'name' is empty")
+    num = {f: _finite(row[f] or "", path, number, f) for f in OPK_FIELDS[1:-1]}
+    time = row.get("time")
+    R = opk_to_rotation(num["omega"], num["phi"], num["kappa"])
+    try:
+        intr = Intrinsics(
+            int(num["width"]),
+            int(num["height"]),
+            num["fx"],
+            num["fy"],
+            num["cx"],
+            num["cy"],
+            (num["k1"], num["k2"], num["p1"], num["p2"], num["k3"]),
+        )
+    except InputError as exc:
+        raise InputError(f"{path}:{number}: {exc}") from None
+    center = np.array([num["x"], num["y"], num["z"]])
+    image = Path(image_dir) / name if image_dir is not None else None
+    t = _finite(time, path, number, "time") if time else float(order)
+    return View(name, intr, Pose.from_center(R, center), image, t)
+
+
+def read_poses(
+    path: str | Path,
+    image_dir: str | Path | None = None,
+    *,
+    bad_rows: list[tuple[str, str]] | None = None,
+) -> PoseSet:
     """Read any supported pose file, chosen by name: a COLMAP ``images.txt`` / ``images.bin``
-    (or the folder with either), or an OPK ``.csv``."""
+    (or the folder with either), or an OPK ``.csv``.
+
+    bad_rows : when given, malformed rows of a text format are appended to it as
+    ``(name, error)`` and reading goes on (a binary model is read whole or not at all)."""
     path = Path(path)
     if path.is_dir():
         if (path / "images.txt").exists():
-            return read_colmap_text(path, image_dir)
+            return read_colmap_text(path, image_dir, bad_rows=bad_rows)
         if (path / "images.bin").exists():
             return read_colmap_binary(path, image_dir)
         raise MissingInputError(f"{path}: no images.txt or images.bin in this folder")
     if path.suffix.lower() == ".csv":
-        return read_opk_csv(path, image_dir)
+        return read_opk_csv(path, image_dir, bad_rows=bad_rows)
     if path.suffix.lower() == ".bin":
         return read_colmap_binary(path, image_dir)
     if path.suffix.lower() == ".txt":
-        return read_colmap_text(path, image_dir)
+        return read_colmap_text(path, image_dir, bad_rows=bad_rows)
     raise InputError(f"{path}: unknown pose format (expected images.txt, images.bin or .csv)")
