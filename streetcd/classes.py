@@ -35,3 +35,10 @@ NAMES: dict[int, str] = {
 # Classes whose raw change the detector down-weights (paper §3.3: "a small weight to the raw
 # changes that reside in the class of the trees and roads").
 LOW_WEIGHT = (VEGETATION, ROAD)
+
+# Classes whose reference colours the appearance check compares with the image
+# (:mod:`streetcd.appearance`): the street inventory a city keeps, where "is the object
+# still there?" is the question, and where a removed or replaced object often leaves no
+# geometric trace a neighbour can see (a board in front of a plain wall, a hedge in place of
+# a railing).
+INVENTORY = (POLE, SIGN, RAILING, FURNITURE)

@@ -5,7 +5,8 @@
 1. surface of the view and of each neighbour from the reference cloud (z-buffer eq. 1–3,
    view-dependent triangulation; :func:`streetcd.surface.surface_for_view`);
 2. histogram stretching of every image and the raw change ``C_p`` (eq. 4–5,
-   :mod:`streetcd.correlate`);
+   :mod:`streetcd.correlate`), fused with the reference-colour check ``A_p`` (not in the
+   paper; :mod:`streetcd.appearance`) as ``max(C_p, k · A_p)``;
 3. node energy (eq. 7), class-aware superpixels (eq. 10–11), graph cut (eq. 6, 8–9) and
    speckle filter (:mod:`streetcd.graphcut`);
 4. the changed regions: 8-connected components of the mask, each with a score (mean node
@@ -35,6 +36,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from streetcd.appearance import appearance_change
 from streetcd.camera import Intrinsics, backproject
 from streetcd.correlate import (
     Neighbour,
@@ -95,7 +97,10 @@ class DetectionResult:
     changed_fraction : share of the image's pixels in the mask. origin : (3,) float64 CRS
     metres of the local frame. Beyond the contract: ``region_labels`` (H, W) int32 (0 = none),
     ``support`` (H, W) uint8 (neighbours that gave evidence per pixel), ``view`` (name),
-    ``neighbours`` (names of the neighbours used), ``timings`` (seconds per step).
+    ``neighbours`` (names of the neighbours used), ``timings`` (seconds per step),
+    ``appearance`` (H, W) float32 ``A_p`` of :mod:`streetcd.appearance` in [0, 1], or None
+    when the check is off or the cloud has no colours. The node energy is eq. 7 of
+    ``max(raw_change, weight · appearance)``.
     """
 
     mask: np.ndarray
@@ -113,6 +118,7 @@ class DetectionResult:
     view: str = ""
     neighbours: tuple[str, ...] = ()
     timings: dict[str, float] = field(default_factory=dict)
+    appearance: np.ndarray | None = None
 
 
 def _check_image(image: np.ndarray, view: View) -> np.ndarray:
@@ -164,6 +170,8 @@ class SurfaceCache:
             params.zbuffer,
             params.surface,
             params.max_range_m,
+            _wants_colour(cloud, params),
+            id(cloud.rgb),
             id(cloud.xyz),
             id(cloud.classification),
             len(cloud.xyz),
@@ -184,8 +192,9 @@ class SurfaceCache:
         size = _surface_bytes(surf)
         if size > self.max_bytes:
             return
-        for array in (surf.depth, surf.classes, surf.valid):
-            array.flags.writeable = False  # shared by every result that reuses it
+        for array in (surf.depth, surf.classes, surf.valid, surf.colour):
+            if array is not None:
+                array.flags.writeable = False  # shared by every result that reuses it
         self._drop_dead()
         old = self._entries.pop(key, None)
         if old is not None:
@@ -212,7 +221,14 @@ class SurfaceCache:
 
 
 def _surface_bytes(surf: Any) -> int:
-    return surf.depth.nbytes + surf.classes.nbytes + surf.valid.nbytes
+    colour = 0 if surf.colour is None else surf.colour.nbytes
+    return surf.depth.nbytes + surf.classes.nbytes + surf.valid.nbytes + colour
+
+
+def _wants_colour(cloud: PointCloud, params: DetectParams) -> bool:
+    """Whether surfaces carry the reference colours: the appearance check is on and the
+    cloud has colours."""
+    return params.appearance.enabled and cloud.rgb is not None
 
 
 SURFACES = SurfaceCache()  # per process: a worker detecting a segment's views reuses them
@@ -227,11 +243,12 @@ def _surface(
 ) -> Any:
     """The view's surface from ``cache`` or built (and cached); EmptyViewError as
     :func:`streetcd.surface.surface_for_view`."""
-    from streetcd.surface import surface_for_view
+    from streetcd.surface import rgb8, surface_for_view
 
     def build() -> Any:
+        rgb = rgb8(cloud.rgb) if cloud.rgb is not None and _wants_colour(cloud, params) else None
         return surface_for_view(
-            cloud.xyz, cloud.classification, image, local.intrinsics, local.pose, params
+            cloud.xyz, cloud.classification, image, local.intrinsics, local.pose, params, rgb
         )[0]
 
     if cache is None:
@@ -309,7 +326,15 @@ def detect_view(
     lap("stretch")
     change, support = _raw_change_at_cell_scale(stretched, surf, local, used, params)
     lap("raw_change")
-    energy = node_energy(change, params.graphcut.a, params.graphcut.b)
+    appearance = None
+    fused = change
+    if params.appearance.enabled and surf.colour is not None:
+        appearance = appearance_change(
+            image, surf.colour, surf.valid, surf.classes, params.appearance
+        )
+        fused = np.maximum(change, np.float32(params.appearance.weight) * appearance)
+        lap("appearance")
+    energy = node_energy(fused, params.graphcut.a, params.graphcut.b)
     lap("node_energy")
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut)
     lap("graphcut")
@@ -334,6 +359,7 @@ def detect_view(
         view=view.name,
         neighbours=tuple(names),
         timings=timings,
+        appearance=appearance,
     )
 
 
@@ -478,6 +504,12 @@ def load_clouds(paths: Sequence[str | Path]) -> PointCloud:
         xyz=np.concatenate([c.xyz for c in clouds]),
         origin=first.origin,
         classification=np.concatenate([c.classification for c in clouds]),
+        # colours only when every file has them (the appearance check needs all or none)
+        rgb=(
+            np.concatenate([c.rgb for c in clouds])
+            if all(c.rgb is not None for c in clouds)
+            else None
+        ),
         crs=next(iter(crss), None),
     )
 

@@ -184,21 +184,41 @@ def evaluate_view(
                 else regraphcut(image, result, params, gparams)
             )
             extra[name] = _score(mask, truth, result.classes)
+        if result.appearance is not None:
+            # thresholds on the fused change the detector's node energy sees, so the margin
+            # of the graph cut is measured against the strongest threshold, not the paper's
+            fused = np.maximum(
+                result.raw_change, np.float32(params.appearance.weight) * result.appearance
+            )
+            for t in THRESHOLDS:
+                extra[f"fused_threshold_{t}"] = _score(
+                    threshold_baseline(fused, t), truth, result.classes
+                )
+            # the paper's method: the same run without the reference-colour check
+            from streetcd.graphcut import node_energy
+
+            energy = node_energy(result.raw_change, params.graphcut.a, params.graphcut.b)
+            mask = regraphcut(image, result, params, params.graphcut, energy=energy)
+            extra["paper_method"] = _score(mask, truth, result.classes)
     return ViewOutcome(view.name, score, extra, seconds)
 
 
 def regraphcut(
-    image: np.ndarray, result: Any, params: DetectParams, gparams: GraphCutParams
+    image: np.ndarray,
+    result: Any,
+    params: DetectParams,
+    gparams: GraphCutParams,
+    energy: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The graph cut (eq. 6–9) and speckle filter again on one view's node energy, depth,
-    classes and superpixels (reused: the switches of eq. 8 do not change them) with other
-    graph-cut parameters; (H, W) bool mask."""
+    """The graph cut (eq. 6–9) and speckle filter again on one view's node energy (or
+    ``energy``), depth, classes and superpixels (reused: the switches of eq. 8 do not change
+    them) with other graph-cut parameters; (H, W) bool mask."""
     from streetcd.correlate import stretch_histogram
     from streetcd.graphcut import cut_changes
 
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
     return cut_changes(
-        result.node_energy,
+        result.node_energy if energy is None else energy,
         stretched,
         result.depth,
         result.classes,

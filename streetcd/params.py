@@ -143,6 +143,33 @@ class GraphCutParams:
 
 
 @dataclass(frozen=True)
+class AppearanceParams:
+    """Reference-colour check (:mod:`streetcd.appearance`; an addition to the paper, which
+    uses the cloud's colours only in the z-buffer): the image against the old cloud's own
+    colours, on the inventory classes. ``enabled = False`` is the paper's method."""
+
+    enabled: bool = True
+    weight: float = 0.6  # k: the fused change is max(C_p, k · A_p) (tuned, docs/TUNING.md)
+    classes: tuple[int, ...] = classes.INVENTORY  # where the reference colours are checked
+    dark_level: float = 24.0  # ε, added to R+G+B (0–765) so dark pixels have no chroma noise
+    chroma_weight: float = 2.0  # w_c, weight of the L1 chromaticity difference (0–2)
+    brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
+    brightness_tolerance: float = 0.5  # ... beyond this (ln units: shadows, exposure)
+
+    def __post_init__(self) -> None:
+        _check(self.weight >= 0, "weight", self.weight, ">= 0")
+        _check(self.dark_level > 0, "dark_level", self.dark_level, "> 0")
+        _check(self.chroma_weight >= 0, "chroma_weight", self.chroma_weight, ">= 0")
+        _check(self.brightness_weight >= 0, "brightness_weight", self.brightness_weight, ">= 0")
+        _check(
+            self.brightness_tolerance >= 0,
+            "brightness_tolerance",
+            self.brightness_tolerance,
+            ">= 0",
+        )
+
+
+@dataclass(frozen=True)
 class DetectParams:
     """Everything one view's detection needs."""
 
@@ -150,6 +177,7 @@ class DetectParams:
     surface: SurfaceParams = field(default_factory=SurfaceParams)
     correlate: CorrelateParams = field(default_factory=CorrelateParams)
     graphcut: GraphCutParams = field(default_factory=GraphCutParams)
+    appearance: AppearanceParams = field(default_factory=AppearanceParams)
     max_range_m: float = 60.0  # points farther than this from the camera are ignored
 
     def __post_init__(self) -> None:
@@ -176,6 +204,7 @@ def _build(cls: type, values: dict[str, Any], where: str) -> Any:
             "SurfaceParams": SurfaceParams,
             "CorrelateParams": CorrelateParams,
             "GraphCutParams": GraphCutParams,
+            "AppearanceParams": AppearanceParams,
         }
         if isinstance(sub, str) and sub in nested and isinstance(value, dict):
             value = _build(nested[sub], value, f"{where}.{name}")

@@ -58,11 +58,14 @@ class ViewSurface:
     depth : (H, W) float32, metres, camera-frame z; NaN where there is no surface.
     classes : (H, W) uint8, class code of the nearest point; 0 where there is no surface.
     valid : (H, W) bool, True where a kept triangle covers the pixel centre.
+    colour : (H, W, 3) uint8 RGB of the nearest point (the reference cloud's own colours,
+        8-bit), 0 where there is no surface; None when the cloud has no colours.
     """
 
     depth: np.ndarray
     classes: np.ndarray
     valid: np.ndarray
+    colour: np.ndarray | None = None
 
 
 # --- triangulation -------------------------------------------------------------------------
@@ -325,15 +328,16 @@ def _span(k_u, k_0, lo, hi):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _rasterise(uv, depth, classes, tris, height, width):  # pragma: no cover - compiled
-    """Barycentric inverse-depth rasterisation with a z-test; class of the nearest vertex.
+def _rasterise(uv, depth, tris, height, width):  # pragma: no cover - compiled
+    """Barycentric inverse-depth rasterisation with a z-test; index of the nearest vertex
+    (-1 where no triangle covers the pixel).
 
     Everything evaluated per pixel is an affine function of (column, row) over a triangle:
     the barycentric weights, the inverse depth and the differences of squared distances to
     the vertices; each is stepped by one addition per pixel.
     """
     out = np.full((height, width), np.nan, dtype=np.float32)
-    cls = np.zeros((height, width), dtype=np.uint8)
+    nearest = np.full((height, width), -1, dtype=np.int32)
     for t in range(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         ua, va = uv[a, 0], uv[a, 1]
@@ -364,7 +368,6 @@ def _rasterise(uv, depth, classes, tris, height, width):  # pragma: no cover - c
         # |p − a|² − |p − b|² = 2 p·(b − a) + |a|² − |b|², likewise for (a, c) and (b, c)
         ab_u, ab_v, ab_0 = 2 * (ub - ua), 2 * (vb - va), ua * ua + va * va - ub * ub - vb * vb
         ac_u, ac_v, ac_0 = 2 * (uc - ua), 2 * (vc - va), ua * ua + va * va - uc * uc - vc * vc
-        ka, kb, kc = classes[a], classes[b], classes[c]
         wc_u, wc_v, wc_0 = -wa_u - wb_u, -wa_v - wb_v, 1.0 - wa_0 - wb_0
         for r in range(r0, r1 + 1):
             # the columns where all three weights are >= 0 (pixel centre inside or on an edge)
@@ -383,15 +386,15 @@ def _rasterise(uv, depth, classes, tris, height, width):  # pragma: no cover - c
                 if not (z >= out[r, col]):  # nearer, or the first (NaN)
                     out[r, col] = z
                     if dab <= 0.0 and dac <= 0.0:
-                        cls[r, col] = ka
+                        nearest[r, col] = a
                     elif dac - dab <= 0.0:  # |p − b|² <= |p − c|²
-                        cls[r, col] = kb
+                        nearest[r, col] = b
                     else:
-                        cls[r, col] = kc
+                        nearest[r, col] = c
                 iz += iz_u
                 dab += ab_u
                 dac += ac_u
-    return out, cls
+    return out, nearest
 
 
 def rasterise(
@@ -400,17 +403,29 @@ def rasterise(
     classes: np.ndarray,
     triangles: np.ndarray,
     shape: tuple[int, int],
+    colours: np.ndarray | None = None,
 ) -> ViewSurface:
-    """Depth and class rasters of ``triangles`` over the points (see module docstring).
+    """Depth, class and (with ``colours``) colour rasters of ``triangles`` over the points
+    (see module docstring).
 
     uv (N, 2) float64 px, depth (N,) float64 m, classes (N,) uint8, triangles (T, 3) int
-    indices, shape (H, W). Returns a :class:`ViewSurface`.
+    indices, shape (H, W), colours (N, 3) uint8 RGB or None. Returns a :class:`ViewSurface`.
     """
     uv, depth = _check_points(uv, depth)
-    classes = np.ascontiguousarray(classes, dtype=np.uint8)
     tris = np.ascontiguousarray(triangles, dtype=np.int32).reshape(-1, 3)
-    z, cls = _rasterise(uv, depth, classes, tris, int(shape[0]), int(shape[1]))
-    return ViewSurface(depth=z, classes=cls, valid=~np.isnan(z))
+    z, nearest = _rasterise(uv, depth, tris, int(shape[0]), int(shape[1]))
+    valid = nearest >= 0
+    # one spare row at the end stands for "no surface": class 0, colour black
+    cls_table = np.append(np.asarray(classes, dtype=np.uint8), np.uint8(0))
+    cls = cls_table[np.where(valid, nearest, len(depth))]
+    colour = None
+    if colours is not None:
+        colours = np.asarray(colours, dtype=np.uint8).reshape(-1, 3)
+        if len(colours) != len(depth):
+            raise InputError(f"colours must be ({len(depth)}, 3), got {colours.shape}")
+        colour = colours[np.where(valid, nearest, 0)]
+        colour[~valid] = 0
+    return ViewSurface(depth=z, classes=cls, valid=~np.isnan(z), colour=colour)
 
 
 def view_surface(
@@ -421,6 +436,7 @@ def view_surface(
     params: SurfaceParams,
     *,
     cell_px: int = 1,
+    colours: np.ndarray | None = None,
 ) -> ViewSurface:
     """Per-pixel depth and class of a view from its projected points (paper §3.3).
 
@@ -429,11 +445,12 @@ def view_surface(
     uv : (N, 2) float64, pixels; depth : (N,) float64, metres, camera z; classes : (N,) uint8.
     shape : (H, W) of the image.
     params : triangle filters, see :func:`triangulate`; cell_px as there.
+    colours : (N, 3) uint8 RGB of the points, or None.
 
     Returns
     -------
     ViewSurface: depth (H, W) float32 metres (NaN = no surface), classes (H, W) uint8 (0 = no
-    surface), valid (H, W) bool.
+    surface), valid (H, W) bool, colour (H, W, 3) uint8 or None.
     """
     uv, depth = _check_points(uv, depth)
     if classes.shape != depth.shape:
@@ -442,7 +459,7 @@ def view_surface(
         raise InputError(f"cell_px must be >= 1, got {cell_px}")
     h, w = int(shape[0]), int(shape[1])
     tris = _triangulate(uv, depth, (h, w), w, params, int(cell_px))
-    return rasterise(uv, depth, classes, tris, (h, w))
+    return rasterise(uv, depth, classes, tris, (h, w), colours)
 
 
 def _zbuffer_params_for(params: ZBufferParams, width: int) -> ZBufferParams:
@@ -464,6 +481,7 @@ def surface_for_view(
     intrinsics: Intrinsics,
     pose: Pose,
     params: DetectParams,
+    rgb: np.ndarray | None = None,
 ) -> tuple[ViewSurface, ProjectedPoints]:
     """Project a cloud into a view, z-buffer it (eq. 1–3, metric variant, see
     :mod:`streetcd.zbuffer`) and build the view's surface.
@@ -472,6 +490,8 @@ def surface_for_view(
     ----------
     xyz_local : (N, 3) float64, metres, local frame of ``pose``; cloud_classes : (N,) uint8.
     image : (H, W, 3) uint8 RGB, must match ``intrinsics`` in size.
+    rgb : (N, 3) colours of the cloud (uint16 LAS colours or uint8), or None: with them the
+        surface carries the reference colour raster (:mod:`streetcd.appearance`).
     params : uses ``max_range_m``, ``zbuffer`` (its windows scaled to the image width when
         ``zbuffer.scale_with_resolution``) and ``surface``.
 
@@ -503,5 +523,21 @@ def surface_for_view(
         image.shape[:2],
         params.surface,
         cell_px=zparams.block_window_px,
+        colours=None if rgb is None else rgb8(np.asarray(rgb)[kept.index]),
     )
     return surface, kept
+
+
+def rgb8(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) point colours as uint8: LAS stores 16-bit colours (0–65535), some writers put
+    8-bit values in them; a cloud whose largest value is below 256 is taken as 8-bit."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype == np.uint8:
+        return rgb
+    if rgb.size and int(rgb.max()) < 256:
+        return rgb.astype(np.uint8)
+    return (
+        (rgb >> 8).astype(np.uint8)
+        if rgb.dtype.kind == "u"
+        else np.clip(rgb / 257, 0, 255).astype(np.uint8)
+    )

@@ -26,7 +26,13 @@ from streetcd.detect import (
 from streetcd.errors import CorruptFileError, EmptyViewError, MissingInputError
 from streetcd.io.las import PointCloud, write_las
 from streetcd.io.poses import read_poses, write_opk_csv
-from streetcd.params import DetectParams, SurfaceParams, ZBufferParams, load_params
+from streetcd.params import (
+    AppearanceParams,
+    DetectParams,
+    SurfaceParams,
+    ZBufferParams,
+    load_params,
+)
 from streetcd.views import PoseSet, View
 
 INTR = Intrinsics(320, 240, 280.0, 280.0, 159.5, 119.5)
@@ -60,8 +66,13 @@ def cells(points: np.ndarray, size: float, salt: int) -> np.ndarray:
     return np.column_stack([h & 255, (h >> 8) & 255, (h >> 16) & 255]).astype(np.float64)
 
 
-def render(x: float, board: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-cast camera ``x``: (H, W, 3) uint8 image and (H, W) bool "pixel shows the board"."""
+PLAIN_WALL = (150.0, 150.0, 140.0)
+RED_BOARD = (200.0, 40.0, 40.0)
+
+
+def render(x: float, board: bool = True, plain: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast camera ``x``: (H, W, 3) uint8 image and (H, W) bool "pixel shows the board".
+    ``plain``: a uniform plaster wall instead of the muted panels."""
     pose = local_pose(x)
     rays = pixel_rays(pixel_grid(INTR.height, INTR.width), INTR) @ pose.R  # world directions
     c = pose.center
@@ -80,7 +91,7 @@ def render(x: float, board: bool = True) -> tuple[np.ndarray, np.ndarray]:
             t[ok], what[ok] = near[ok], 2
     pts = c + rays * t[:, None]
     rgb = np.full((len(rays), 3), 200.0)  # sky
-    rgb[what == 0] = 90 + 0.3 * cells(pts[what == 0], 0.3, 1)  # wall: muted panels
+    rgb[what == 0] = PLAIN_WALL if plain else 90 + 0.3 * cells(pts[what == 0], 0.3, 1)
     rgb[what == 1] = 60 + 0.25 * cells(pts[what == 1], 0.4, 2)[:, :1]  # ground: grey tiles
     rgb[what == 2] = cells(pts[what == 2], 0.2, 3)  # board: bright random cells
     image = np.clip(rgb, 0, 255).astype(np.uint8).reshape(INTR.height, INTR.width, 3)
@@ -108,6 +119,20 @@ def make_cloud(board: bool, step: float = 0.04) -> PointCloud:
     xyz = np.concatenate([p.reshape(-1, 3) for p, _ in parts])
     cls = np.concatenate([np.full(p.size // 3, c, np.uint8) for p, c in parts])
     return PointCloud(xyz, ORIGIN.copy(), cls)
+
+
+def with_colours(cloud: PointCloud) -> PointCloud:
+    """The cloud as an MLS scanner would colour it (16-bit LAS colours): plain wall, grey
+    ground, red board."""
+    colour = {
+        classes.BUILDING: PLAIN_WALL,
+        classes.GROUND: (90.0, 90.0, 90.0),
+        classes.SIGN: RED_BOARD,
+    }
+    rgb8 = np.array([colour[int(c)] for c in cloud.classification])
+    return PointCloud(
+        cloud.xyz, cloud.origin, cloud.classification, rgb=(rgb8 * 257).astype(np.uint16)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -147,6 +172,26 @@ def test_a_board_missing_from_the_cloud_is_detected(images):
     assert np.array_equal(result.region_labels > 0, result.mask)
     assert result.changed_fraction == pytest.approx(result.mask.mean())
     assert np.array_equal(result.origin, ORIGIN)
+
+
+def test_a_board_removed_from_a_plain_wall_is_seen_only_by_the_reference_colours():
+    """The paper's eq. 5 cannot see it (every neighbour, sampled through the board's old
+    depth, shows the same plaster); the old cloud's colours can (streetcd.appearance)."""
+    plain = {name: render(x, board=False, plain=True)[0] for name, x in CAMERAS.items()}
+    cloud = with_colours(make_cloud(board=True))
+    was_board = render(0.0)[1]
+    paper = DetectParams(
+        surface=PARAMS.surface, zbuffer=PARAMS.zbuffer, appearance=AppearanceParams(enabled=False)
+    )
+    nbs = [(plain[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    without = detect_view(plain["p.png"], make_view("p.png"), nbs, cloud, paper)
+    assert without.appearance is None
+    assert without.mask[was_board].mean() < 0.1
+    result = run(plain, cloud)
+    assert result.appearance is not None
+    assert result.mask[was_board].mean() > 0.75
+    assert result.mask[~was_board].mean() < 0.01
+    assert result.regions[0].dominant_class == classes.SIGN  # the old object, located
 
 
 def test_a_view_that_sees_no_points_names_the_view(images):

@@ -49,10 +49,23 @@ def test_evaluate_scene_pools_every_view_and_scores_the_baselines(tiny_street):
         "threshold_0.3",
         "color_only",
         "color_depth_class",
+        # the synthetic cloud has colours: the appearance check runs, so the same thresholds
+        # on the fused change and the paper's method without the check are scored too
+        "fused_threshold_0.12",
+        "fused_threshold_0.2",
+        "fused_threshold_0.3",
+        "paper_method",
     }
     # a lower threshold flags a superset of the pixels a higher one flags
-    flagged = [report.baselines[f"threshold_{t}"].pixels.pd for t in (0.12, 0.2, 0.3)]
-    assert flagged == sorted(flagged, reverse=True)
+    for prefix in ("threshold", "fused_threshold"):
+        flagged = [report.baselines[f"{prefix}_{t}"].pixels.pd for t in (0.12, 0.2, 0.3)]
+        assert flagged == sorted(flagged, reverse=True)
+    # the fused change is at least the raw change: it flags a superset at every threshold
+    for t in (0.12, 0.2, 0.3):
+        assert (
+            report.baselines[f"fused_threshold_{t}"].pixels.pd
+            >= report.baselines[f"threshold_{t}"].pixels.pd
+        )
     manifest = json.loads((tiny_street / "manifest.json").read_text())
     assert sum(r.ns for r in report.per_type.values()) == len(manifest["objects"])
 

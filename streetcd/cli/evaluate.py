@@ -22,7 +22,10 @@ def _table1(console: Any, overall: dict, baselines: dict) -> None:
 
     t = Table(title="Table 1 — change detection results (pooled over views)")
     for col in ("method", "GDR (%)", "FDR (%)", "TP (%)", "FP (%)", "KC", "flagged (%)"):
-        t.add_column(col, justify="left" if col == "method" else "right")
+        if col == "method":
+            t.add_column(col, justify="left", no_wrap=True, min_width=22)
+        else:
+            t.add_column(col, justify="right")
     rows = [("proposed", overall), *baselines.items()]
     for name, r in rows:
         t.add_row(
