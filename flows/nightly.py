@@ -39,11 +39,12 @@ SEGMENTS_IN_FLIGHT = 32
 
 
 @task(name="ingest-archive", cache_policy=NO_CACHE, persist_result=False)
-def ingest_archive(archive: str, store: str, workers: int = 1) -> dict[str, Any]:
-    """Add new or changed LAS/LAZ files of ``archive`` to the tile store (others skipped)."""
+def ingest_archive(archive: str, store: str, client: Any = None) -> dict[str, Any]:
+    """Add new or changed LAS/LAZ files of ``archive`` to the tile store (others skipped),
+    one file per task on the run's Dask cluster (``client``), else in this process."""
     from streetcd.tiles import ingest
 
-    result = ingest(archive, store, workers=workers)
+    result = ingest(archive, store, client=client)
     logger = get_run_logger()
     logger.info(
         "ingest: %d new file(s), %d unchanged, %d failed, %d points, %d tiles",
@@ -150,7 +151,8 @@ def nightly(
         pipeline.dask_client_soon(scheduler, workers) as starting,
     ):
         if archive:
-            ingest_archive(archive, store)
+            # files are read on the cluster (the store is on storage its workers share)
+            ingest_archive(archive, store, quote(starting.result()))
         the_plan = plan(images, poses, store, index, out, params, retry_failed)
         summary = pipeline.new_summary(the_plan)
         summary.plan_s = time.perf_counter() - t0

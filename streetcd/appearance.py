@@ -25,7 +25,9 @@ compared after
    so cast shadows (darker, same hue) that the scan did not have count little:
    ``A_p = min(1, w_c · ‖ĉ_I − ĉ_M‖₁ + w_b · max(0, |ln(ΣI / ΣM)| − t_b))``.
 
-It is checked only on the **inventory classes** (poles, signs, railings, furniture): there
+It is checked only on the **inventory classes** (poles, signs, railings, furniture), over their
+footprint with see-through gaps closed (a railing's bars are a few pixels wide; the hedge
+that replaced it stands in the gaps too, where the old surface is the wall behind): there
 the question is whether the object is still there, and façades, ground and trees differ from
 their scan for reasons that are no change (glass reflects the sky, foliage moves, shadows
 move). New objects in front of façades and ground are left to eq. 5, which sees them by their
@@ -38,7 +40,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from streetcd.params import AppearanceParams
+from streetcd.params import AppearanceParams, scale_px
 
 _DEFAULTS = AppearanceParams()
 
@@ -80,6 +82,41 @@ def colour_distance(
     return np.clip(a, 0.0, 1.0).astype(np.float32)
 
 
+def footprint(classes: np.ndarray, checked_classes: tuple[int, ...], close_px: int) -> np.ndarray:
+    """(H, W) bool: the pixels of ``checked_classes`` in the (H, W) uint8 class raster, closed
+    (dilated, then eroded) with a disc ``close_px`` wide, so that the see-through gaps of a
+    railing or between a sign's posts count as the object's footprint."""
+    mask: np.ndarray = np.isin(classes, checked_classes).astype(np.uint8)
+    if close_px > 1 and mask.any():
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close_px, close_px))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, disc)
+    return mask.astype(bool)
+
+
+def fill_nearest(reference: np.ndarray, valid: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``reference`` (H, W, 3) with each pixel of ``where`` that has no surface (``valid``
+    False) given the colour of the nearest pixel that has one. Works on the rows ``where``
+    spans (a distance transform with nearest-pixel labels, OpenCV's 5×5 L2 mask)."""
+    holes = where & ~valid
+    if not holes.any() or not valid.any():
+        return reference
+    rows = np.flatnonzero(where.any(axis=1))
+    r0, r1 = int(rows[0]), int(rows[-1]) + 1
+    band = valid[r0:r1]
+    if not band.any():
+        return reference
+    _, labels = cv2.distanceTransformWithLabels(
+        (~band).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # labels number the valid pixels 1, 2, … in row-major order
+    source = np.flatnonzero(band.ravel())
+    band_holes = holes[r0:r1]
+    out = reference.copy()
+    pick = source[labels[band_holes] - 1]
+    out[r0:r1][band_holes] = reference[r0:r1].reshape(-1, 3)[pick]
+    return out
+
+
 def appearance_change(
     image: np.ndarray,
     reference: np.ndarray,
@@ -92,12 +129,17 @@ def appearance_change(
     image : (H, W, 3) uint8 RGB of the view. reference : (H, W, 3) uint8 colours of the old
     cloud as the view sees it (``ViewSurface.colour``). valid : (H, W) bool, pixels with a
     surface. classes : (H, W) uint8 class raster. Returns (H, W) float32 in [0, 1], 0 outside
-    ``params.classes`` and where there is no surface.
+    the footprint of ``params.classes`` (:func:`footprint`, its gaps closed over
+    ``params.gap_px`` scaled to the image width); gaps without a surface take the nearest
+    surface pixel's colour.
     """
-    checked = valid & np.isin(classes, params.classes)
+    close_px = int(round(scale_px(params.gap_px, valid.shape[1]))) | 1  # odd
+    checked = footprint(classes, params.classes, close_px) if params.gap_px > 0 else None
+    if checked is None:
+        checked = valid & np.isin(classes, params.classes)
     out = np.zeros(valid.shape, dtype=np.float32)
-    if not checked.any():
+    if not checked.any() or not valid.any():
         return out
-    mapped = transfer_colours(reference, image, valid)
+    mapped = transfer_colours(fill_nearest(reference, valid, checked), image, valid)
     out[checked] = colour_distance(image[checked], mapped[checked], params)
     return out

@@ -151,6 +151,9 @@ class AppearanceParams:
     enabled: bool = True
     weight: float = 0.6  # k: the fused change is max(C_p, k · A_p) (tuned, docs/TUNING.md)
     classes: tuple[int, ...] = classes.INVENTORY  # where the reference colours are checked
+    # gaps narrower than this (px at REFERENCE_WIDTH_PX) inside an inventory object are its
+    # footprint too (a railing's see-through gaps); 0 checks the class pixels only
+    gap_px: float = 128.0
     dark_level: float = 24.0  # ε, added to R+G+B (0–765) so dark pixels have no chroma noise
     chroma_weight: float = 2.0  # w_c, weight of the L1 chromaticity difference (0–2)
     brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
@@ -158,6 +161,7 @@ class AppearanceParams:
 
     def __post_init__(self) -> None:
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
+        _check(self.gap_px >= 0, "gap_px", self.gap_px, ">= 0")
         _check(self.dark_level > 0, "dark_level", self.dark_level, "> 0")
         _check(self.chroma_weight >= 0, "chroma_weight", self.chroma_weight, ">= 0")
         _check(self.brightness_weight >= 0, "brightness_weight", self.brightness_weight, ">= 0")

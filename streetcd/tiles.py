@@ -955,14 +955,18 @@ def ingest(
     buffer_points: int = 4_000_000,
     prune: bool = False,
     progress: Progress | None = None,
+    client: Any | None = None,
 ) -> IngestResult:
     """Ingest an archive of LAS/LAZ files into the tile store ``store`` (created if needed).
 
     Files already ingested (same size and mtime) are skipped. A file that cannot be read
     (truncated, empty, non-finite coordinates, a CRS other than the store's) is recorded as
     failed in the index and in the result, and the run goes on. ``workers`` > 1 reads files
-    in that many processes; commits happen here, one file at a time. Memory per process is
-    about ``chunk_points + buffer_points`` points (≈ 60 B each), whatever the archive size.
+    in that many local processes; with ``client`` (a ``distributed.Client``) each file is a
+    task on that Dask cluster instead (``workers`` is then ignored; the store and the archive
+    must be on storage its workers share, and progress comes per finished file). Commits
+    happen here, one file at a time. Memory per process is about
+    ``chunk_points + buffer_points`` points (≈ 60 B each), whatever the archive size.
     ``prune`` drops the points of files the store has but the archive no longer lists.
     Raises StoreLockedError when another ingest is writing to ``store``.
     """
@@ -978,7 +982,7 @@ def ingest(
         path, tuple(files), tile_size_m, scale_m, workers, reader, chunk_points, buffer_points
     )
     with _store_lock(path):
-        return _ingest_locked(job, prune, progress, t0)
+        return _ingest_locked(job, prune, progress, t0, client)
 
 
 @dataclass(frozen=True)
@@ -1034,7 +1038,9 @@ def _plan(
     return todo, skipped, failed, stats, crs
 
 
-def _ingest_locked(job: _Job, prune: bool, progress: Progress | None, t0: float) -> IngestResult:
+def _ingest_locked(
+    job: _Job, prune: bool, progress: Progress | None, t0: float, client: Any | None = None
+) -> IngestResult:
     path, tile_size_m, scale_m = job.path, job.tile_size_m, job.scale_m
     index = read_index(path)
     if index is not None and (index["tile_size_m"] != tile_size_m or index["scale_m"] != scale_m):
@@ -1090,7 +1096,9 @@ def _ingest_locked(job: _Job, prune: bool, progress: Progress | None, t0: float)
         writer.commit(done, *stats[task.path])
         ingested.append(task.path)
 
-    if job.workers == 1 or len(tasks) <= 1:
+    if client is not None and tasks:
+        _run_dask(tasks, client, report, finish)
+    elif job.workers == 1 or len(tasks) <= 1:
         for task in tasks:
             finish(task, functools.partial(_ingest_file, task, report))
     else:
@@ -1136,6 +1144,35 @@ def _run_pool(
             pool.shutdown(wait=False, cancel_futures=True)
             raise
         _drain(q, report)
+
+
+def _run_dask(
+    tasks: list[_FileTask],
+    client: Any,
+    report: Callable[[str, int], None],
+    finish: Callable[[_FileTask, Callable[[], _FileDone]], None],
+) -> None:
+    """Files as tasks on a Dask cluster, committed here as they finish (any order: a
+    commit is per file); progress is reported per finished file."""
+    from distributed import as_completed
+
+    futures = {
+        client.submit(_ingest_file, t, _no_report, key=f"streetcd-ingest-{t.key}", pure=False): t
+        for t in tasks
+    }
+    try:
+        for fut in as_completed(list(futures), loop=client.loop):
+            task = futures[fut]
+            finish(task, fut.result)
+            if fut.status == "finished":
+                report(task.path, fut.result().points)
+    except BaseException:
+        client.cancel(list(futures))
+        raise
+
+
+def _no_report(path: str, n: int) -> None:
+    """Chunk progress inside a Dask task goes nowhere; the caller reports whole files."""
 
 
 def _drain(q: Any, report: Callable[[str, int], None]) -> None:

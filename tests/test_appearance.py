@@ -9,6 +9,7 @@ from streetcd import classes as cls
 from streetcd.appearance import (
     appearance_change,
     colour_distance,
+    fill_nearest,
     transfer_colours,
 )
 from streetcd.params import AppearanceParams
@@ -82,3 +83,54 @@ def test_rasterise_carries_the_colour_of_the_nearest_vertex():
 def test_rgb8_reads_16_bit_and_8_bit_las_colours():
     assert np.array_equal(rgb8(np.array([[65535, 257, 0]], np.uint16)), [[255, 1, 0]])
     assert np.array_equal(rgb8(np.array([[255, 10, 0]], np.uint16)), [[255, 10, 0]])
+
+
+def _railing():
+    """A railing's bars (every 8th column, 2 px wide) in front of a grey wall, in a 400 px
+    wide view; half of the gaps have no surface (the scan saw nothing there)."""
+    h, w = 100, 400
+    ref = np.full((h, w, 3), (150, 150, 140), np.uint8)
+    classes = np.full((h, w), cls.BUILDING, np.uint8)
+    valid = np.ones((h, w), bool)
+    rows, cols = slice(60, 80), slice(100, 294)  # from the first bar to the last
+    classes[rows, cols] = cls.BUILDING
+    bars = np.zeros((h, w), bool)
+    for c in range(100, 300, 8):
+        bars[60:80, c : c + 2] = True
+    classes[bars] = cls.RAILING
+    ref[bars] = (60, 60, 60)
+    valid[60:80, 100:200] = bars[60:80, 100:200]  # no surface in the left half's gaps
+    ref[~valid] = 0
+    return ref, classes, valid, (rows, cols)
+
+
+def test_a_hedge_in_place_of_a_railing_is_seen_in_the_gaps_too():
+    ref, classes, valid, (rows, cols) = _railing()
+    image = ref.copy()
+    image[~valid] = (150, 150, 140)  # the wall the scan missed behind the gaps
+    unchanged = appearance_change(image, ref, valid, classes)
+    # gaps without a surface take a bar's colour, so an unchanged railing is not 0 there, but
+    # weighted it stays below eq. 7's midpoint b / a = 11 / 45
+    weight = AppearanceParams().weight
+    assert unchanged[rows, cols].max() * weight < 11 / 45
+    image[rows, cols] = (40, 110, 40)  # a hedge stands where the railing stood
+    a = appearance_change(image, ref, valid, classes)
+    # bars, gaps with a surface and gaps without one: past the midpoint once weighted (the
+    # closing disc rounds the gaps' ends: their first and last rows stay out)
+    assert a[62:78, cols].min() * weight > 11 / 45
+    outside = np.ones(a.shape, bool)
+    outside[55:85, 95:305] = False
+    assert a[outside].max() == 0.0
+    only_bars = appearance_change(image, ref, valid, classes, AppearanceParams(gap_px=0))
+    assert only_bars[rows, cols][classes[rows, cols] != cls.RAILING].max() == 0.0
+
+
+def test_fill_nearest_takes_the_closest_surface_colour():
+    ref = np.zeros((3, 5, 3), np.uint8)
+    ref[:, 0] = (10, 0, 0)
+    ref[:, 4] = (0, 20, 0)
+    valid = np.zeros((3, 5), bool)
+    valid[:, [0, 4]] = True
+    out = fill_nearest(ref, valid, np.ones((3, 5), bool))
+    assert tuple(out[1, 1]) == (10, 0, 0) and tuple(out[1, 3]) == (0, 20, 0)
+    assert np.array_equal(out[:, [0, 4]], ref[:, [0, 4]])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import struct
 import subprocess
 import sys
@@ -178,6 +179,33 @@ def test_parallel_ingest_equals_serial_ingest(archive, tmp_path):
     assert r.ok and len(r.ingested) == 4
     assert seen[-1][0] == seen[-1][1] == 12000  # chunk progress came back from the workers
     assert_same_store(tmp_path / "par.zarr", tmp_path / "ser.zarr")
+
+
+def test_ingest_on_a_dask_cluster_equals_serial_ingest_and_records_bad_files(archive, tmp_path):
+    from distributed import Client, LocalCluster
+
+    d, _ = archive
+    bad = tmp_path / "arch"
+    shutil.copytree(d, bad)
+    (bad / "broken.laz").write_bytes((d / sorted(os.listdir(d))[0]).read_bytes()[:2000])
+    seen = []
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster,
+        Client(cluster, set_as_default=False) as client,  # as the flow's client is
+    ):
+        r = ingest(
+            bad,
+            tmp_path / "dask.zarr",
+            tile_size_m=TILE,
+            client=client,
+            progress=lambda done, total, name: seen.append((done, total)),
+        )
+    serial = ingest(bad, tmp_path / "ser.zarr", tile_size_m=TILE, workers=1)
+    assert len(r.ingested) == 4 and list(r.failed) == [str(bad / "broken.laz")]
+    assert r.failed == serial.failed
+    assert "broken.laz" in r.failed[str(bad / "broken.laz")]
+    assert seen[-1][0] == 12000  # every good file's points reported once it finished
+    assert_same_store(tmp_path / "dask.zarr", tmp_path / "ser.zarr")
 
 
 def test_reingest_changes_nothing(archive, tmp_path):
