@@ -414,18 +414,43 @@ def rasterise(
     uv, depth = _check_points(uv, depth)
     tris = np.ascontiguousarray(triangles, dtype=np.int32).reshape(-1, 3)
     z, nearest = _rasterise(uv, depth, tris, int(shape[0]), int(shape[1]))
-    valid = nearest >= 0
-    # one spare row at the end stands for "no surface": class 0, colour black
-    cls_table = np.append(np.asarray(classes, dtype=np.uint8), np.uint8(0))
-    cls = cls_table[np.where(valid, nearest, len(depth))]
+    classes = np.ascontiguousarray(classes, dtype=np.uint8)
+    cls = _gather_classes(nearest, classes)
     colour = None
     if colours is not None:
-        colours = np.asarray(colours, dtype=np.uint8).reshape(-1, 3)
+        colours = np.ascontiguousarray(colours, dtype=np.uint8).reshape(-1, 3)
         if len(colours) != len(depth):
             raise InputError(f"colours must be ({len(depth)}, 3), got {colours.shape}")
-        colour = colours[np.where(valid, nearest, 0)]
-        colour[~valid] = 0
+        colour = _gather_colours(nearest, colours)
     return ViewSurface(depth=z, classes=cls, valid=~np.isnan(z), colour=colour)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_classes(nearest, classes):  # pragma: no cover - compiled
+    """(H, W) uint8: class of each pixel's nearest vertex, 0 where ``nearest`` is -1."""
+    h, w = nearest.shape
+    out = np.zeros((h, w), np.uint8)
+    for r in range(h):
+        for c in range(w):
+            k = nearest[r, c]
+            if k >= 0:
+                out[r, c] = classes[k]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_colours(nearest, colours):  # pragma: no cover - compiled
+    """(H, W, 3) uint8: colour of each pixel's nearest vertex, black where it is -1."""
+    h, w = nearest.shape
+    out = np.zeros((h, w, 3), np.uint8)
+    for r in range(h):
+        for c in range(w):
+            k = nearest[r, c]
+            if k >= 0:
+                out[r, c, 0] = colours[k, 0]
+                out[r, c, 1] = colours[k, 1]
+                out[r, c, 2] = colours[k, 2]
+    return out
 
 
 def view_surface(
