@@ -23,6 +23,7 @@ itself; either way it locates the change on the street to within the object's de
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 import weakref
@@ -58,6 +59,8 @@ from streetcd.params import DetectParams, scale_px
 from streetcd.views import PoseSet, View
 
 _DEFAULTS = DetectParams()  # frozen: one shared default instance
+log = logging.getLogger(__name__)
+_told_no_colours = False  # said once per process: every view of such a cloud is the same
 
 BBOX_PERCENTILES = (2.0, 98.0)  # region extent: drop the few edge pixels that hit background
 CHANGE_CELL_PX = 24.0  # raw change runs where a superpixel cell is about this wide
@@ -247,6 +250,10 @@ def _surface(
 
     def build() -> Any:
         rgb = rgb8(cloud.rgb) if cloud.rgb is not None and _wants_colour(cloud, params) else None
+        if rgb is not None and not rgb.any():
+            # LAS formats 2, 3, 5, 7, 8 and 10 always have RGB fields; all zero means the
+            # writer had no colours, not a black street
+            rgb = None
         return surface_for_view(
             cloud.xyz, cloud.classification, image, local.intrinsics, local.pose, params, rgb
         )[0]
@@ -328,6 +335,8 @@ def detect_view(
     lap("raw_change")
     appearance = None
     fused = change
+    if params.appearance.enabled and surf.colour is None:
+        _tell_no_colours()
     if params.appearance.enabled and surf.colour is not None:
         appearance = appearance_change(
             image, surf.colour, surf.valid, surf.classes, params.appearance
@@ -361,6 +370,17 @@ def detect_view(
         timings=timings,
         appearance=appearance,
     )
+
+
+def _tell_no_colours() -> None:
+    global _told_no_colours
+    if not _told_no_colours:
+        _told_no_colours = True
+        log.warning(
+            "the reference cloud has no colours (none, or all zero): the reference-colour check "
+            "(streetcd.appearance) is off and removed or replaced objects in front of "
+            "plain backgrounds will be missed (the paper's method alone)"
+        )
 
 
 def _raw_change_at_cell_scale(
@@ -587,6 +607,8 @@ def summary(result: DetectionResult, view: View) -> dict[str, Any]:
         "score": round(result.score, 4),
         "changed_fraction": round(result.changed_fraction, 6),
         "neighbours": list(result.neighbours),
+        # False when the cloud has no colours or the check is switched off
+        "appearance_check": result.appearance is not None,
         "origin": [float(v) for v in result.origin],
         "regions": [
             {

@@ -194,6 +194,26 @@ def test_a_board_removed_from_a_plain_wall_is_seen_only_by_the_reference_colours
     assert result.regions[0].dominant_class == classes.SIGN  # the old object, located
 
 
+def test_a_cloud_without_colours_runs_the_papers_method_and_says_so_once(
+    images, caplog, monkeypatch
+):
+    import streetcd.detect as detect_module
+
+    monkeypatch.setattr(detect_module, "_told_no_colours", False)
+    cloud = make_cloud(board=False)  # no rgb
+    # a LAS format with RGB fields that the writer left at zero has no colours either
+    black = PointCloud(
+        cloud.xyz, cloud.origin, cloud.classification, rgb=np.zeros((len(cloud), 3), np.uint16)
+    )
+    with caplog.at_level("WARNING", logger="streetcd.detect"):
+        first = run(images, cloud)
+        second = run(images, black)
+    assert first.appearance is None and second.appearance is None
+    assert np.array_equal(first.mask, second.mask)
+    said = [r.getMessage() for r in caplog.records if "no colours" in r.getMessage()]
+    assert len(said) == 1 and "reference-colour check" in said[0]
+
+
 def test_a_view_that_sees_no_points_names_the_view(images):
     looking_away = look_at([0.0, 0.0, 1.6], [0.0, -10.0, 1.6])
     view = View("away.png", INTR, Pose.from_center(looking_away.R, looking_away.center + ORIGIN))
@@ -277,6 +297,7 @@ def test_cli_writes_mask_overlay_and_summary(scene_dir, tmp_path):
     info = json.loads((out / "p.json").read_text())
     assert info["view"] == "p.png" and info["score"] > 0.5
     assert len(info["neighbours"]) == 3 and "p.png" not in info["neighbours"]
+    assert info["appearance_check"] is False  # these LAZ files' RGB fields are all zero
     (region,) = info["regions"]
     centroid = np.array(region["centroid"]) - ORIGIN  # written in the CRS
     assert centroid[0] == pytest.approx(0.0, abs=0.3) and centroid[1] == pytest.approx(12, abs=0.05)
