@@ -32,8 +32,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
-import socket
 import sqlite3
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -153,44 +151,23 @@ def run_lock(index: str | Path, what: str = "a streetcd run") -> Iterator[Path]:
     than waits: a nightly job that finds last night's run still going should say so, not
     queue up behind it.
 
-    The lock is an advisory ``flock`` on ``<index>.lock``: the kernel drops it when the
-    holder's process ends, however it ends, so a killed run never leaves a stale lock. The
-    file stays (removing it would let two runs lock two different files); it holds the
-    holder's description while held, nothing after. ``flock`` works across processes on one
-    host and on NFS v4 mounts (Linux maps it to POSIX locks there, as SQLite's own).
+    The lock is :func:`streetcd.locks.exclusive` on ``<index>.lock`` (an advisory
+    ``flock``, dropped by the kernel with its holder); the file describes the holder while
+    held, nothing after.
     """
-    import fcntl
+    from streetcd.locks import exclusive
 
     path = lock_path(index)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise IndexBusyError(
-                f"change index {index} is in use by another run ({_holder(fd)}; lock file "
-                f"{path}); wait for it to finish. Nothing was changed."
-            ) from None
-        holder = {"what": what, "pid": os.getpid(), "host": socket.gethostname()}
-        holder["since"] = utc_now()
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, json.dumps(holder).encode(), 0)
-        try:
-            yield path
-        finally:
-            os.ftruncate(fd, 0)
-    finally:
-        os.close(fd)  # releases the lock
 
+    def busy(holder: str) -> IndexBusyError:
+        return IndexBusyError(
+            f"change index {index} is in use by another run ({holder}; lock file "
+            f"{path}); wait for it to finish. Nothing was changed."
+        )
 
-def _holder(fd: int) -> str:
-    """The lock holder as text, from the lock file's content."""
-    try:
-        h = json.loads(os.pread(fd, 4096, 0).decode())
-        return f"{h['what']}, process {h['pid']} on {h['host']} since {h['since']}"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "holder unknown: it has only just taken the lock"
+    with exclusive(path, busy, what):
+        yield path
 
 
 # --- records ------------------------------------------------------------------------------

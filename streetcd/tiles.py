@@ -60,7 +60,6 @@ points any more: open the store again.
 
 from __future__ import annotations
 
-import fcntl
 import functools
 import glob
 import hashlib
@@ -85,6 +84,7 @@ from zarr.codecs import BloscCodec
 
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError, StreetcdError
 from streetcd.io.las import LasInfo, PointCloud, iter_las_chunks, las_info
+from streetcd.locks import exclusive
 
 FORMAT = "streetcd-tiles/2"
 INDEX_ATTR = "streetcd_tiles"
@@ -830,17 +830,15 @@ def _store_lock(path: Path) -> Iterator[None]:
                 f"{path}: exists and is not a streetcd tile store; choose a new path for --store"
             )
     path.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise StoreLockedError(
-                f"{path}: another ingest is writing to this store; run again when it is done"
-            ) from None
+
+    def busy(_: str) -> StoreLockedError:
+        return StoreLockedError(
+            f"{path}: another ingest is writing to this store; run again when it is done"
+        )
+
+    # the lock file is never written: re-ingesting an unchanged archive touches nothing
+    with exclusive(path / LOCK_NAME, busy):
         yield
-    finally:
-        os.close(fd)  # releases the lock
 
 
 class _Store:
