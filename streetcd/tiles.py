@@ -1056,15 +1056,18 @@ def _ingest_locked(
     for fp in sorted(failed):
         writer.fail(fp, *stats[fp], failed[fp])
 
-    total = sum(info.point_count for _, info in todo)
+    expected = {f: info.point_count for f, info in todo}
+    total = sum(expected.values())
     done_points = 0
+    reported: dict[str, int] = {}
     ingested: list[str] = []
 
     def report(p: str, n: int) -> None:
         nonlocal done_points
         done_points += n
+        reported[p] = reported.get(p, 0) + n
         if progress is not None:
-            progress(done_points, total, Path(p).name)
+            progress(min(done_points, total), total, Path(p).name)
 
     keys = {f: _file_key(Path(f), *stats[f]) for f, _ in todo}
     tasks = [
@@ -1090,6 +1093,10 @@ def _ingest_locked(
             failed[task.path] = exc
             writer.fail(task.path, *stats[task.path], exc)
             shutil.rmtree(Path(task.staging), ignore_errors=True)
+            # the points it will never deliver are done with too: the bar still reaches 100 %
+            left = expected[task.path] - reported.get(task.path, 0)
+            if left > 0:
+                report(task.path, left)
             return
         writer.commit(done, *stats[task.path])
         ingested.append(task.path)

@@ -398,7 +398,15 @@ def test_bad_files_fail_by_name_and_good_files_still_complete(archive, tmp_path)
         origin=ORIGIN,
         crs="EPSG:25832",
     )
-    r = ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=4000)
+    seen = []
+    r = ingest(
+        d,
+        tmp_path / "s.zarr",
+        tile_size_m=TILE,
+        chunk_points=4000,
+        progress=lambda done, total, name: seen.append((done, total)),
+    )
+    assert seen[-1][0] == seen[-1][1]  # the bar ends at 100 %, the half-read cut.laz included
     expected = {
         "cut.laz": "CorruptFileError",
         "empty.laz": "InputError",
