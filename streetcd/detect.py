@@ -41,10 +41,10 @@ from streetcd.appearance import appearance_change
 from streetcd.camera import Intrinsics, backproject
 from streetcd.correlate import (
     Neighbour,
+    envelope_levels,
     raw_change,
     registration_radius_px,
     stretch_histogram,
-    stretched_envelope,
 )
 from streetcd.errors import (
     CorruptFileError,
@@ -236,6 +236,34 @@ def _wants_colour(cloud: PointCloud, params: DetectParams) -> bool:
 
 SURFACES = SurfaceCache()  # per process: a worker detecting a segment's views reuses them
 
+# the last cloud colour array seen and its 8-bit version (None: all zero)
+_last_rgb8: tuple[weakref.ref, np.ndarray | None] | None = None
+
+
+def _cloud_rgb8(cloud: PointCloud) -> np.ndarray | None:
+    """The cloud's colours as (N, 3) uint8 (:func:`streetcd.surface.rgb8`), None when it has
+    none or all are zero.
+
+    Kept for the last colour array seen (a weak reference: it goes with the cloud), so
+    that a view and its neighbours convert the cloud once, not once per surface (two
+    passes over every point, ~5 ms per 3 M points). As with :class:`SurfaceCache`, a
+    colour array changed *in place* is not noticed.
+    """
+    global _last_rgb8
+    from streetcd.surface import rgb8
+
+    if cloud.rgb is None:
+        return None
+    if _last_rgb8 is not None and _last_rgb8[0]() is cloud.rgb:
+        return _last_rgb8[1]
+    rgb: np.ndarray | None = rgb8(cloud.rgb)
+    if rgb is not None and not rgb.any():
+        # LAS formats 2, 3, 5, 7, 8 and 10 always have RGB fields; all zero means the
+        # writer had no colours, not a black street
+        rgb = None
+    _last_rgb8 = (weakref.ref(cloud.rgb), rgb)
+    return rgb
+
 
 def _surface(
     image: np.ndarray,
@@ -246,14 +274,10 @@ def _surface(
 ) -> Any:
     """The view's surface from ``cache`` or built (and cached); EmptyViewError as
     :func:`streetcd.surface.surface_for_view`."""
-    from streetcd.surface import rgb8, surface_for_view
+    from streetcd.surface import surface_for_view
 
     def build() -> Any:
-        rgb = rgb8(cloud.rgb) if cloud.rgb is not None and _wants_colour(cloud, params) else None
-        if rgb is not None and not rgb.any():
-            # LAS formats 2, 3, 5, 7, 8 and 10 always have RGB fields; all zero means the
-            # writer had no colours, not a black street
-            rgb = None
+        rgb = _cloud_rgb8(cloud) if _wants_colour(cloud, params) else None
         return surface_for_view(
             cloud.xyz, cloud.classification, image, local.intrinsics, local.pose, params, rgb
         )[0]
@@ -320,12 +344,14 @@ def detect_view(
             lap("surface")
             continue  # a neighbour without points gives no evidence
         lap("surface")
-        # the colour envelope straight from the uint8 image: the stretched image itself is
-        # not needed (raw_change reads only the envelope)
+        # the colour envelope straight from the uint8 image, stretched only where
+        # raw_change samples it: neither the stretched image nor a float envelope is built
         radius = registration_radius_px(nb_local.intrinsics.width, params.correlate)
-        lo, hi = stretched_envelope(nb_image, radius, params.correlate.stretch_percentiles)
+        lo, hi, lut = envelope_levels(nb_image, radius, params.correlate.stretch_percentiles)
         used.append(
-            Neighbour(lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi))
+            Neighbour(
+                lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi), lut=lut
+            )
         )
         names.append(nb_view.name)
         lap("stretch")
@@ -416,8 +442,9 @@ def _raw_change_at_cell_scale(
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
     change, support = raw_change(
         cv2.resize(stretched, (ws, hs), interpolation=cv2.INTER_AREA),
-        np.ascontiguousarray(surf.depth[rows][:, cols]),
-        np.ascontiguousarray(surf.classes[rows][:, cols]),
+        # np.take: contiguous, without the (hs, W) intermediate of a[rows][:, cols]
+        np.take(np.take(surf.depth, rows, axis=0), cols, axis=1),
+        np.take(np.take(surf.classes, rows, axis=0), cols, axis=1),
         small,
         local.pose,
         used,

@@ -51,9 +51,16 @@ def node_energy(change: np.ndarray, a: float = 45.0, b: float = 11.0) -> np.ndar
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def _s_curve(c, out, a, b, lo, hi):  # pragma: no cover - compiled
-    """out = clip((σ(a·clip(c, 0, 1) − b) − lo) / (hi − lo), 0, 1), one pass, float32 out."""
+    """out = clip((σ(a·clip(c, 0, 1) − b) − lo) / (hi − lo), 0, 1), one pass, float32 out.
+
+    About half the pixels of a view have no raw change at all (no evidence, or a colour
+    inside the neighbours' envelope): they get f(0), computed once, not one exp each."""
     scale = 1.0 / (hi - lo)
+    zero = min(max((1.0 / (1.0 + math.exp(b - a * 0.0)) - lo) * scale, 0.0), 1.0)
     for i in range(c.shape[0]):
+        if c[i] <= 0.0:
+            out[i] = zero
+            continue
         x = min(max(c[i], 0.0), 1.0)
         s = 1.0 / (1.0 + math.exp(b - a * x))
         out[i] = min(max((s - lo) * scale, 0.0), 1.0)
@@ -119,11 +126,14 @@ def superpixels(
     h, w = classes.shape
     cell, scale = _work_scale(w, params)
     hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
-    small: np.ndarray = np.ascontiguousarray(image, dtype=np.float32) * np.float32(1 / 255)
+    small: np.ndarray = np.ascontiguousarray(image, dtype=np.float32)
     cls = classes
     if (hs, ws) != (h, w):
         small = cv2.resize(small, (ws, hs), interpolation=cv2.INTER_AREA)
         cls = classes[nearest_index(hs, h)][:, nearest_index(ws, w)]
+    # scaled to [0, 1] (what cvtColor expects of float RGB) after the downscale: a
+    # twentieth of the pixels, and no full-size float copy of the image
+    small = small * np.float32(1 / 255)
     lab = cv2.cvtColor(small, cv2.COLOR_RGB2Lab)
     _, rank = np.unique(cls, return_inverse=True)
     rank = rank.reshape(hs, ws).astype(np.int32)
@@ -138,12 +148,21 @@ def superpixels(
         _SLIC_ITERATIONS,
     )
     if (hs, ws) != (h, w):
-        # np.take keeps the result C-contiguous (``a[rows][:, cols]`` is not), which spares
+        # C-contiguous in one pass (``a[rows][:, cols]`` is neither), which spares
         # superpixel_stats and adjacency a full-size copy each
-        labels = np.take(
-            np.take(labels, nearest_index(h, hs), axis=0), nearest_index(w, ws), axis=1
-        )
+        labels = _upsample_nearest(labels, nearest_index(h, hs), nearest_index(w, ws))
     return labels
+
+
+@numba.njit(cache=True, nogil=True)
+def _upsample_nearest(labels, rows, cols):  # pragma: no cover - compiled
+    """(len(rows), len(cols)) int32 ``labels[rows][:, cols]``, C-contiguous."""
+    out = np.empty((rows.shape[0], cols.shape[0]), dtype=labels.dtype)
+    for r in range(rows.shape[0]):
+        src = labels[rows[r]]
+        for c in range(cols.shape[0]):
+            out[r, c] = src[cols[c]]
+    return out
 
 
 _SLIC_ITERATIONS = 5  # Achanta et al.: most of the convergence happens in the first few
@@ -457,5 +476,62 @@ def cut_changes(
     )
     weights = params.beta * sim * boundary / cell
     changed = min_cut(area * stats.energy, area * (1.0 - stats.energy), pairs, weights)
-    mask = speckle_filter(changed[labels], speckle_min_px(w, params))
+    min_px = speckle_min_px(w, params)
+    if min_px <= 1 or not changed.any():
+        return CutResult(changed[labels], labels, changed, stats)
+    mask = _speckle_superpixels(labels, changed, stats.count, float(min_px))
     return CutResult(mask, labels, changed, stats)
+
+
+@numba.njit(cache=True, nogil=True)
+def _speckle_superpixels(labels, changed, count, min_px):  # pragma: no cover - compiled
+    """:func:`speckle_filter` of ``changed[labels]`` (H, W) bool, on superpixels.
+
+    labels (H, W) int32 superpixels, each 4-connected (as :func:`superpixels` makes them);
+    changed (n,) bool; count (n,) float64 pixels per superpixel. The mask is a union of
+    whole superpixels, so its 8-connected segments are unions of changed superpixels that
+    touch (side or corner): one pass over the pixels joins those (union-find), a segment's
+    area is the sum of its superpixels' counts, and the mask is drawn from the superpixels
+    kept. The same mask as labelling the pixels (OpenCV's connected components take
+    ~0.15 s at 12 MP on one core; this ~0.04 s).
+    """
+    n = changed.shape[0]
+    parent = np.arange(n)
+    h, w = labels.shape
+    for r in range(h):
+        for c in range(w):
+            a = labels[r, c]
+            if not changed[a]:
+                continue
+            # right, down-left, down, down-right: every 8-neighbour pair once
+            for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+                rr, cc = r + dr, c + dc
+                if rr >= h or cc < 0 or cc >= w:
+                    continue
+                b = labels[rr, cc]
+                if b == a or not changed[b]:
+                    continue
+                ra, rb = _root(parent, a), _root(parent, b)
+                if ra != rb:
+                    parent[max(ra, rb)] = min(ra, rb)
+    area = np.zeros(n)
+    for k in range(n):
+        if changed[k]:
+            area[_root(parent, k)] += count[k]
+    keep = np.zeros(n, np.bool_)
+    for k in range(n):
+        keep[k] = changed[k] and area[_root(parent, k)] >= min_px
+    out = np.empty((h, w), np.bool_)
+    for r in range(h):
+        for c in range(w):
+            out[r, c] = keep[labels[r, c]]
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _root(parent, k):  # pragma: no cover - compiled
+    """Root of ``k`` in the union-find forest ``parent``, halving the path on the way."""
+    while parent[k] != k:
+        parent[k] = parent[parent[k]]
+        k = parent[k]
+    return k

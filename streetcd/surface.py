@@ -328,16 +328,22 @@ def _span(k_u, k_0, lo, hi):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _rasterise(uv, depth, tris, height, width):  # pragma: no cover - compiled
-    """Barycentric inverse-depth rasterisation with a z-test; index of the nearest vertex
-    (-1 where no triangle covers the pixel).
+def _rasterise(uv, depth, tris, height, width, classes, colours):  # pragma: no cover
+    """Barycentric inverse-depth rasterisation with a z-test; (H, W) float32 depth (NaN
+    where no triangle covers the pixel), and the class (H, W) uint8 and colour (H, W, 3)
+    uint8 of each pixel's nearest vertex (0 where none; colours (N, 3) uint8, or (0, 3)
+    for none: the colour raster is then (0, 0, 3)).
 
     Everything evaluated per pixel is an affine function of (column, row) over a triangle:
     the barycentric weights, the inverse depth and the differences of squared distances to
-    the vertices; each is stepped by one addition per pixel.
+    the vertices; each is stepped by one addition per pixel. Class and colour are written
+    with the depth, not gathered afterwards through a raster of vertex indices: at 12 MP
+    that spares a 48 MB index raster and two full passes (~30 ms per surface).
     """
     out = np.full((height, width), np.nan, dtype=np.float32)
-    nearest = np.full((height, width), -1, dtype=np.int32)
+    cls = np.zeros((height, width), dtype=np.uint8)
+    with_colour = colours.shape[0] > 0
+    colour = np.zeros((height, width, 3) if with_colour else (0, 0, 3), dtype=np.uint8)
     for t in range(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         ua, va = uv[a, 0], uv[a, 1]
@@ -386,15 +392,20 @@ def _rasterise(uv, depth, tris, height, width):  # pragma: no cover - compiled
                 if not (z >= out[r, col]):  # nearer, or the first (NaN)
                     out[r, col] = z
                     if dab <= 0.0 and dac <= 0.0:
-                        nearest[r, col] = a
+                        k = a
                     elif dac - dab <= 0.0:  # |p − b|² <= |p − c|²
-                        nearest[r, col] = b
+                        k = b
                     else:
-                        nearest[r, col] = c
+                        k = c
+                    cls[r, col] = classes[k]
+                    if with_colour:
+                        colour[r, col, 0] = colours[k, 0]
+                        colour[r, col, 1] = colours[k, 1]
+                        colour[r, col, 2] = colours[k, 2]
                 iz += iz_u
                 dab += ab_u
                 dac += ac_u
-    return out, nearest
+    return out, cls, colour
 
 
 def rasterise(
@@ -413,44 +424,21 @@ def rasterise(
     """
     uv, depth = _check_points(uv, depth)
     tris = np.ascontiguousarray(triangles, dtype=np.int32).reshape(-1, 3)
-    z, nearest = _rasterise(uv, depth, tris, int(shape[0]), int(shape[1]))
     classes = np.ascontiguousarray(classes, dtype=np.uint8)
-    cls = _gather_classes(nearest, classes)
-    colour = None
+    if classes.shape != depth.shape:
+        raise InputError(f"classes must be {depth.shape}, got {classes.shape}")
+    h, w = int(shape[0]), int(shape[1])
+    packed = np.zeros((0, 3), np.uint8)  # (0, 3): no colour raster
     if colours is not None:
-        colours = np.ascontiguousarray(colours, dtype=np.uint8).reshape(-1, 3)
-        if len(colours) != len(depth):
-            raise InputError(f"colours must be ({len(depth)}, 3), got {colours.shape}")
-        colour = _gather_colours(nearest, colours)
+        packed = np.ascontiguousarray(colours, dtype=np.uint8).reshape(-1, 3)
+        if len(packed) != len(depth):
+            raise InputError(f"colours must be ({len(depth)}, 3), got {packed.shape}")
+    z, cls, colour = _rasterise(uv, depth, tris, h, w, classes, packed)
+    if colours is None:
+        return ViewSurface(depth=z, classes=cls, valid=~np.isnan(z))
+    if colour.shape != (h, w, 3):  # colours for no point at all: nothing was drawn
+        colour = np.zeros((h, w, 3), np.uint8)
     return ViewSurface(depth=z, classes=cls, valid=~np.isnan(z), colour=colour)
-
-
-@numba.njit(cache=True, nogil=True)
-def _gather_classes(nearest, classes):  # pragma: no cover - compiled
-    """(H, W) uint8: class of each pixel's nearest vertex, 0 where ``nearest`` is -1."""
-    h, w = nearest.shape
-    out = np.zeros((h, w), np.uint8)
-    for r in range(h):
-        for c in range(w):
-            k = nearest[r, c]
-            if k >= 0:
-                out[r, c] = classes[k]
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _gather_colours(nearest, colours):  # pragma: no cover - compiled
-    """(H, W, 3) uint8: colour of each pixel's nearest vertex, black where it is -1."""
-    h, w = nearest.shape
-    out = np.zeros((h, w, 3), np.uint8)
-    for r in range(h):
-        for c in range(w):
-            k = nearest[r, c]
-            if k >= 0:
-                out[r, c, 0] = colours[k, 0]
-                out[r, c, 1] = colours[k, 1]
-                out[r, c, 2] = colours[k, 2]
-    return out
 
 
 def view_surface(

@@ -148,14 +148,19 @@ def _in_frustum(xyz, R, t, max_range2, bounds):  # pragma: no cover - compiled
     yn = np.empty(n, dtype=np.float64)
     zs = np.empty(n, dtype=np.float64)
     m = 0
+    # Most of a street's cloud lies behind or beside a view (5 % of the points remain at
+    # 2 MP): test each coordinate as soon as it is known, z first (~40 % faster than
+    # computing x, y, z for every point). The same tests, so the same points.
     for i in range(n):
         X, Y, Z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-        x = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]
-        y = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + t[1]
         z = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
-        if not (z > 0.0) or x * x + y * y + z * z > max_range2:
+        if not (z > 0.0):
             continue
-        if x < bounds[0] * z or x > bounds[1] * z or y < bounds[2] * z or y > bounds[3] * z:
+        x = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]
+        if x < bounds[0] * z or x > bounds[1] * z:
+            continue
+        y = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + t[1]
+        if y < bounds[2] * z or y > bounds[3] * z or x * x + y * y + z * z > max_range2:
             continue
         idx[m] = i
         xn[m] = x / z
@@ -324,6 +329,52 @@ def _search_radius(cells, depth, gh, gw, window, half, reach_scale):  # pragma: 
 
 
 @numba.njit(cache=True, nogil=True)
+def _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale):  # pragma: no cover
+    """The occupied block cells, packed in row-major order, with what eq. 2–3 read of each.
+
+    Returns ``table`` (M, 7) float64 rows (z, u, v, R, G, B, reach) of the M points in
+    ``cells``, ``ids`` (M,) int64 their cell indices and ``start`` (gh, gw + 1) int64: the
+    occupied cells of grid row ``y`` at columns ``x0 ≤ x < x1`` are the rows
+    ``start[y, x0]:start[y, x1]`` of ``table``.
+
+    Why: :func:`_weighted_erase` scans up to (2·radius / w)² cells per centre, radius up
+    to ~85 px at 12 MP (near points reach far, :func:`_search_radius`), and only about a
+    third of the cells hold a point (synthetic street, 12 MP). Scanning only occupied
+    cells, each read from one packed row instead of through the point index into ``uv``,
+    ``depth`` and the image, makes the scan ~1.7× faster at 12 MP. The values are the ones
+    the scan computed (same expressions) and the order of the visits is the same, so the
+    result does not change.
+    """
+    start = np.empty((gh, gw + 1), dtype=np.int64)
+    m = 0
+    for y in range(gh):
+        for x in range(gw):
+            start[y, x] = m
+            if cells[y * gw + x] >= 0:
+                m += 1
+        start[y, gw] = m
+    table = np.empty((m, 7), dtype=np.float64)
+    ids = np.empty(m, dtype=np.int64)
+    k = 0
+    for cell in range(cells.shape[0]):
+        i = cells[cell]
+        if i < 0:
+            continue
+        col = int(math.floor(uv[i, 0] + 0.5))
+        row = int(math.floor(uv[i, 1] + 0.5))
+        table[k, 0] = depth[i]
+        table[k, 1] = uv[i, 0]
+        table[k, 2] = uv[i, 1]
+        table[k, 3] = float(image[row, col, 0])
+        table[k, 4] = float(image[row, col, 1])
+        table[k, 5] = float(image[row, col, 2])
+        table[k, 6] = half if reach_scale <= 0.0 else max(half, reach_scale / depth[i])
+        ids[k] = cell
+        k += 1
+    return table, ids, start
+
+
+@numba.njit(cache=True, nogil=True)
 def _weighted_erase(
     cells,
     uv,
@@ -349,50 +400,49 @@ def _weighted_erase(
     A neighbour i counts within ``r_i = max(half, reach_scale / z_i)`` px of the centre
     (``reach_scale = 0``: the fixed ``half``), and its Δd of eq. 2 is taken in units of
     ``r_i / half``; ``radius`` (gh·gw,) int64 is the search radius per cell
-    (:func:`_search_radius`).
+    (:func:`_search_radius`). Only occupied cells are visited (:func:`_packed_cells`).
     """
     height, width = image.shape[0], image.shape[1]
     gw = (width + window - 1) // window
     gh = (height + window - 1) // window
+    table, ids, start = _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale)
     erase = np.zeros(cells.shape[0], dtype=np.bool_)
     side = (2 * radius.max()) // window + 2
-    angles = np.empty(side * side, dtype=np.float64)  # directions of the steep supporters
-    for cell in range(cells.shape[0]):
-        c = cells[cell]
-        if c < 0:
-            continue
-        uc = uv[c, 0]
-        vc = uv[c, 1]
-        zc = depth[c]
+    steep_u = np.empty(side * side, dtype=np.float64)  # offsets of the steep supporters
+    steep_v = np.empty(side * side, dtype=np.float64)
+    for c in range(ids.shape[0]):
+        cell = ids[c]
+        zc = table[c, 0]
+        uc = table[c, 1]
+        vc = table[c, 2]
+        r0 = table[c, 3]
+        g0 = table[c, 4]
+        b0 = table[c, 5]
         colc = int(math.floor(uc + 0.5))
         rowc = int(math.floor(vc + 0.5))
         search = radius[cell]
-        r0 = float(image[rowc, colc, 0])
-        g0 = float(image[rowc, colc, 1])
-        b0 = float(image[rowc, colc, 2])
         n = 0
+        sectors = 0  # bit k: a steep supporter lies in the k-th 22.5° sector around u_c
+        hit = False
         # a neighbour within `search` px of u_c lies in pixel columns colc ± search
         y0, y1 = max(rowc - search, 0) // window, min((rowc + search) // window + 1, gh)
         x0, x1 = max(colc - search, 0) // window, min((colc + search) // window + 1, gw)
         for ny in range(y0, y1):
-            for nx in range(x0, x1):
-                i = cells[ny * gw + nx]
-                if i < 0 or i == c:
+            for i in range(start[ny, x0], start[ny, x1]):
+                dz = zc - table[i, 0]
+                # eq. 3 looks only at supporting points nearer than the centre (this skips
+                # the centre itself, dz = 0)
+                if dz <= 0.0:
                     continue
-                dz = zc - depth[i]
-                if dz <= 0.0:  # eq. 3 looks only at supporting points nearer than the centre
-                    continue
-                du = uv[i, 0] - uc
-                dv = uv[i, 1] - vc
-                reach = half if reach_scale <= 0.0 else max(half, reach_scale / depth[i])
+                du = table[i, 1] - uc
+                dv = table[i, 2] - vc
+                reach = table[i, 6]
                 if abs(du) > reach or abs(dv) > reach:
                     continue
                 dd = math.sqrt(du * du + dv * dv)
-                coli = int(math.floor(uv[i, 0] + 0.5))
-                rowi = int(math.floor(uv[i, 1] + 0.5))
-                dr = float(image[rowi, coli, 0]) - r0
-                dg = float(image[rowi, coli, 1]) - g0
-                db = float(image[rowi, coli, 2]) - b0
+                dr = table[i, 3] - r0
+                dg = table[i, 4] - g0
+                db = table[i, 5] - b0
                 dc = math.sqrt(dr * dr + dg * dg + db * db)
                 # eq. 2: W = exp(−(Δd/γ + Δc/δ)) > τ  ⇔  Δd/γ + Δc/δ < −ln τ
                 # Δd in units of the neighbour's reach: as close relative to its spacing
@@ -401,17 +451,63 @@ def _weighted_erase(
                     continue
                 # eq. 3 as written, offsets in pixels: arctan(dz / dd) > θ  ⇔  dz > tan θ · dd
                 if dz > tan_theta * dd:
-                    erase[cell] = True
+                    hit = True
                     break
                 # the metric reading, offsets in metres at the supporter's depth
-                if surround and dz > tan_theta * dd * depth[i] / focal:
-                    angles[n] = math.atan2(dv, du)
+                if surround and dz > tan_theta * dd * table[i, 0] / focal:
+                    steep_u[n] = du
+                    steep_v[n] = dv
+                    sectors |= 1 << _sector16(du, dv)
                     n += 1
-            if erase[cell]:
+            if hit:
                 break
-        if not erase[cell] and n >= 2 and _max_gap(angles[:n]) <= math.pi + 1e-9:
+        if hit:
             erase[cell] = True
+        elif n >= 2:
+            # Surrounded: the largest gap between the supporters' directions is ≤ 180°. The
+            # sectors they occupy bound it: k empty sectors in a row between two occupied
+            # ones mean a gap of 22.5° · [k, k + 2]. k ≤ 6 everywhere: surely ≤ 180°; some
+            # k ≥ 9: surely more. Only in between are the angles needed (atan2 and a sort
+            # per centre were ~40 % of the z-buffer's time at 12 MP).
+            empty = _longest_empty_run(sectors)
+            if empty <= 6:
+                erase[cell] = True
+            elif empty <= 8:
+                angles = np.empty(n, dtype=np.float64)
+                for k in range(n):
+                    angles[k] = math.atan2(steep_v[k], steep_u[k])
+                erase[cell] = _max_gap(angles) <= math.pi + 1e-9
     return erase
+
+
+@numba.njit(cache=True, inline="always")
+def _sector16(du, dv):  # pragma: no cover - compiled
+    """Which 22.5° sector (0–15, counter-clockwise from +u) the direction (du, dv) ≠ 0
+    lies in; a direction on a border (up to rounding) may go to either side."""
+    adu = abs(du)
+    adv = abs(dv)
+    tan_22_5 = 0.41421356237309503  # √2 − 1
+    if adv <= adu:
+        a = 0 if adv <= tan_22_5 * adu else 1
+    else:
+        a = 3 if adu <= tan_22_5 * adv else 2
+    if du >= 0.0:
+        return a if dv >= 0.0 else 15 - a
+    return 7 - a if dv >= 0.0 else 8 + a
+
+
+@numba.njit(cache=True, inline="always")
+def _longest_empty_run(bits):  # pragma: no cover - compiled
+    """Longest cyclic run of zero bits in the 16-bit mask ``bits`` (16 when it is 0)."""
+    best = 0
+    run = 0
+    for k in range(32):  # twice round: a run may wrap past bit 15
+        if bits & (1 << (k & 15)):
+            run = 0
+        else:
+            run += 1
+            best = max(best, run)
+    return min(best, 16)
 
 
 @numba.njit(cache=True)

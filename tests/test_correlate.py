@@ -242,3 +242,31 @@ def test_stretched_envelope_equals_the_envelope_of_the_stretched_image(radius):
     want = colour_envelope(stretch_histogram(image, (2.0, 97.0)), radius)
     assert got[0].dtype == np.float32
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("tolerance_px", [0.0, 75.0])  # 75 at 4000 px: 3 px here
+def test_uint8_envelope_with_lut_gives_the_same_raw_change_as_the_float_envelope(tolerance_px):
+    """Guards the path detect_view takes for neighbours: the uint8 envelope
+    (envelope_levels) stretched through its look-up table as raw_change samples it equals
+    the float32 envelope of the stretched image, bit for bit."""
+    from streetcd.correlate import envelope_levels, registration_radius_px, stretched_envelope
+
+    params = CorrelateParams(registration_tolerance_px=tolerance_px)
+    image_p, depth_p = render_wall(wall_pose(0.0))
+    image_q, depth_q = render_wall(wall_pose(0.4))
+    image_q = np.clip(image_q * 0.8 + 20, 0, 255).astype(np.uint8)
+    image_q[40:70, 50:90] = (250, 20, 20)  # something the view does not show
+    radius = registration_radius_px(INTR.width, params)
+    assert (radius > 0) == (tolerance_px > 0)
+    lo, hi = stretched_envelope(image_q, radius)
+    flo, fhi, lut = envelope_levels(image_q, radius)
+    assert flo.dtype == np.uint8 and lut.shape == (1, 256, 3)
+    pose_q = wall_pose(0.4)
+    float_nb = Neighbour(lo, depth_q, INTR, pose_q, envelope=(lo, hi))
+    lut_nb = Neighbour(flo, depth_q, INTR, pose_q, envelope=(flo, fhi), lut=lut)
+    cls = np.full(depth_p.shape, classes.BUILDING, np.uint8)
+    args = (stretch_histogram(image_p), depth_p, cls, INTR, wall_pose(0.0))
+    want, want_support = raw_change(*args, [float_nb], params)
+    got, got_support = raw_change(*args, [lut_nb], params)
+    assert want.max() > 0.3  # the red patch shows
+    assert np.array_equal(got, want) and np.array_equal(got_support, want_support)

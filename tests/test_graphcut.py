@@ -187,3 +187,43 @@ def test_graph_cut_does_not_spread_across_a_class_boundary():
     assert np.mean(mask[30:90, 40:80]) > 0.95 and np.mean(mask[30:90, 82:120]) < 0.03
     no_class = cut_changes(energy, image, depth, classes, replace(params, use_class=False)).mask
     assert np.mean(no_class[board]) > 0.95
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_speckle_on_superpixels_equals_the_pixel_speckle_filter(seed):
+    """Guards the superpixel-level speckle filter of cut_changes: on random superpixels
+    (4-connected, as superpixels() makes them) and a random set of changed ones, touching
+    at corners too, it gives exactly speckle_filter(changed[labels])."""
+    from streetcd.graphcut import _speckle_superpixels
+
+    rng = np.random.default_rng(seed)
+    h, w = 90, 130
+    image = rng.uniform(0, 255, (h // 6, w // 6, 3)).astype(np.float32)
+    image = np.repeat(np.repeat(image, 6, axis=0), 6, axis=1)
+    image = np.pad(image, ((0, h - image.shape[0]), (0, w - image.shape[1]), (0, 0)), "edge")
+    classes = rng.integers(1, 4, (h // 10 + 1, w // 10 + 1)).astype(np.uint8)
+    classes = np.repeat(np.repeat(classes, 10, axis=0), 10, axis=1)[:h, :w]
+    labels = superpixels(image, classes, GraphCutParams(superpixel_cell_px=250.0))
+    n = int(labels.max()) + 1
+    changed = rng.random(n) < 0.3
+    count = np.bincount(labels.ravel(), minlength=n).astype(np.float64)
+    for min_px in (2.0, 40.0, 150.0, 600.0):
+        want = speckle_filter(changed[labels], min_px)
+        got = _speckle_superpixels(labels, changed, count, min_px)
+        assert np.array_equal(got, want), min_px
+    # a corner contact joins two superpixels into one segment, as 8-connectivity does
+    corner = np.array([[0, 1], [1, 2]], np.int32)
+    both = np.array([True, False, True])
+    assert _speckle_superpixels(corner, both, np.array([1.0, 2.0, 1.0]), 2.0)[[0, 1], [0, 1]].all()
+
+
+def test_node_energy_of_no_change_is_the_curve_at_zero():
+    """Guards the shortcut for pixels without raw change (they get f(0) computed once)."""
+    c = np.array([0.0, -0.5, 1e-9, 0.3, 1.0, 2.0], np.float32)
+    f = node_energy(c, 45.0, 11.0)
+    lo = 1 / (1 + math.exp(11.0))
+    hi = 1 / (1 + math.exp(11.0 - 45.0))
+    x = np.clip(c.astype(np.float64), 0, 1)
+    want = np.clip((1 / (1 + np.exp(11.0 - 45.0 * x)) - lo) / (hi - lo), 0, 1)
+    assert f[0] == f[1] == 0.0
+    np.testing.assert_allclose(f, want, atol=1e-6)
