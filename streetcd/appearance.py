@@ -95,10 +95,22 @@ def colour_distance(
     return np.clip(a, 0.0, 1.0).astype(np.float32)
 
 
-def footprint(classes: np.ndarray, checked_classes: tuple[int, ...], close_px: int) -> np.ndarray:
+def footprint(
+    classes: np.ndarray,
+    checked_classes: tuple[int, ...],
+    close_px: int,
+    holes: np.ndarray | None = None,
+    hole_reach: float = 0.0,
+) -> np.ndarray:
     """(H, W) bool: the pixels of ``checked_classes`` in the (H, W) uint8 class raster, closed
     (dilated, then eroded) with a disc ``close_px`` wide, so that the see-through gaps of a
-    railing or between a sign's posts count as the object's footprint."""
+    railing or between a sign's posts count as the object's footprint.
+
+    holes : (H, W) bool, pixels without a surface. Those within ``hole_reach · close_px`` of
+    the class count as the class before the closing: the surface filters drop the triangles
+    between a railing's thin bars and the wall behind them, so a railing is mostly holes
+    with a few pixels of its class, and gaps wider than the disc would stay open.
+    """
     mask = np.isin(classes, checked_classes)
     if close_px <= 1 or not mask.any():
         return mask
@@ -107,15 +119,25 @@ def footprint(classes: np.ndarray, checked_classes: tuple[int, ...], close_px: i
     # The footprint then reaches up to f − 1 px past the object, onto what is behind it,
     # whose reference colour is its own: no change is made up there.
     f = max(1, close_px // CLOSE_WORK_PX)
+    small = _block_any(mask, f)
+    k = max(3, close_px // f) | 1
+    if holes is not None and hole_reach > 0:
+        r = max(3, int(hole_reach * close_px / f)) | 1
+        near = cv2.dilate(small, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r, r)))
+        small |= near & _block_any(holes, f)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, disc)
+    h, w = mask.shape
+    return mask | (np.repeat(np.repeat(closed, f, axis=0), f, axis=1)[:h, :w] > 0)
+
+
+def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
+    """(ceil(H/f), ceil(W/f)) uint8: 1 where any pixel of the f × f block of ``mask`` is set."""
     h, w = mask.shape
     hb, wb = -(-h // f), -(-w // f)
     blocks = np.zeros((hb * f, wb * f), np.uint8)
     blocks[:h, :w] = mask
-    small = blocks.reshape(hb, f, wb, f).max(axis=(1, 3))
-    k = max(3, close_px // f) | 1
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, disc)
-    return mask | (np.repeat(np.repeat(closed, f, axis=0), f, axis=1)[:h, :w] > 0)
+    return blocks.reshape(hb, f, wb, f).max(axis=(1, 3))
 
 
 def fill_nearest(
@@ -159,6 +181,7 @@ def appearance_change(
     valid: np.ndarray,
     classes: np.ndarray,
     params: AppearanceParams = _DEFAULTS,
+    registration_px: int = 0,
 ) -> np.ndarray:
     """Appearance change ``A_p`` (module docstring) of one view.
 
@@ -167,10 +190,18 @@ def appearance_change(
     surface. classes : (H, W) uint8 class raster. Returns (H, W) float32 in [0, 1], 0 outside
     the footprint of ``params.classes`` (:func:`footprint`, its gaps closed over
     ``params.gap_px`` scaled to the image width); gaps without a surface take the nearest
-    surface pixel's colour.
+    surface pixel's colour. registration_px > 0: ``A_p`` is opened (a grey erosion, then a
+    dilation) with a (2r+1)² square, so the bands that a registration error of up to ``r``
+    px leaves along an object's outline (image and reference shifted against each other)
+    go, while anything wider keeps its extent: the tolerance eq. 5 has through
+    :func:`streetcd.correlate.colour_envelope`.
     """
     close_px = int(round(scale_px(params.gap_px, valid.shape[1]))) | 1  # odd
-    checked = footprint(classes, params.classes, close_px) if params.gap_px > 0 else None
+    checked = (
+        footprint(classes, params.classes, close_px, holes=~valid, hole_reach=params.hole_reach)
+        if params.gap_px > 0
+        else None
+    )
     if checked is None:
         checked = valid & np.isin(classes, params.classes)
     out = np.zeros(valid.shape, dtype=np.float32)
@@ -180,4 +211,7 @@ def appearance_change(
     ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
     mapped = np.stack([luts[c][ref[:, c]] for c in range(3)], axis=-1)
     out[checked] = colour_distance(image[checked], mapped, params)
+    if registration_px > 0:
+        square = np.ones((2 * registration_px + 1, 2 * registration_px + 1), np.uint8)
+        return np.asarray(cv2.morphologyEx(out, cv2.MORPH_OPEN, square), dtype=np.float32)
     return out

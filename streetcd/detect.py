@@ -358,6 +358,8 @@ def detect_view(
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
     lap("stretch")
     change, support = _raw_change_at_cell_scale(stretched, surf, local, used, params)
+    if params.correlate.silhouette_margin_m > 0 and used:
+        change = _with_near_hypothesis(change, stretched, surf, local, used, params)
     lap("raw_change")
     appearance = None
     fused = change
@@ -365,7 +367,12 @@ def detect_view(
         _tell_no_colours()
     if params.appearance.enabled and surf.colour is not None:
         appearance = appearance_change(
-            image, surf.colour, surf.valid, surf.classes, params.appearance
+            image,
+            surf.colour,
+            surf.valid,
+            surf.classes,
+            params.appearance,
+            registration_radius_px(local.intrinsics.width, params.correlate),
         )
         fused = np.maximum(change, np.float32(params.appearance.weight) * appearance)
         lap("appearance")
@@ -453,6 +460,40 @@ def _raw_change_at_cell_scale(
     return (
         cv2.resize(change, (w, h), interpolation=cv2.INTER_LINEAR),
         cv2.resize(support, (w, h), interpolation=cv2.INTER_NEAREST),
+    )
+
+
+def _with_near_hypothesis(
+    change: np.ndarray,
+    stretched: np.ndarray,
+    surf: Any,
+    local: View,
+    used: Sequence[Neighbour],
+    params: DetectParams,
+) -> np.ndarray:
+    """``change`` (H, W) float32 under the near-depth hypothesis of :mod:`streetcd.silhouette`:
+    where the hypothesis exists, the smaller of the two raw changes when a neighbour sees the
+    nearer point, else 0 (no neighbour can tell the two apart)."""
+    from types import SimpleNamespace
+
+    from streetcd.silhouette import near_depth_hypothesis
+
+    near = near_depth_hypothesis(
+        surf.depth,
+        local.intrinsics.fx,
+        params.correlate.silhouette_margin_m,
+        params.surface.max_depth_jump_m,
+    )
+    if not np.isfinite(near).any():
+        return change
+    alt = SimpleNamespace(depth=near, classes=surf.classes)
+    near_change, near_support = _raw_change_at_cell_scale(stretched, alt, local, used, params)
+    # a pixel that may be the unscanned side of a near object and that no neighbour can
+    # check at that depth gives no evidence, as a pixel that no neighbour sees (eq. 5)
+    return np.where(
+        near_support > 0,
+        np.minimum(change, near_change),
+        np.where(np.isfinite(near), np.float32(0.0), change),
     )
 
 

@@ -86,6 +86,9 @@ class CorrelateParams:
     # colour tolerance for registration error: p's colour is compared with the range of q's
     # colours within this radius (px at REFERENCE_WIDTH_PX; 0 = the paper's pixel difference)
     registration_tolerance_px: float = 4.0  # tuned, docs/TUNING.md (2 px at 1920 wide)
+    # > 0: pixels within f·m/z px of a nearer surface at depth z are also tested at that
+    # depth (the unscanned side of near poles, streetcd.silhouette); 0 = the paper's method
+    silhouette_margin_m: float = 0.2  # tuned, docs/TUNING.md
 
     def __post_init__(self) -> None:
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")
@@ -98,6 +101,12 @@ class CorrelateParams:
         )
         _check(
             0 <= self.low_class_weight <= 1, "low_class_weight", self.low_class_weight, "in [0, 1]"
+        )
+        _check(
+            self.silhouette_margin_m >= 0,
+            "silhouette_margin_m",
+            self.silhouette_margin_m,
+            ">= 0",
         )
         _check(
             self.registration_tolerance_px >= 0,
@@ -113,7 +122,7 @@ class GraphCutParams:
 
     a: float = 45.0  # steepness of the S-curve of eq. 7
     b: float = 11.0  # shift of the S-curve of eq. 7
-    beta: float = 3.0  # β of eq. 6, weight of the smoothness term (tuned, docs/TUNING.md)
+    beta: float = 10.0  # β of eq. 6, weight of the smoothness term (tuned, docs/TUNING.md)
     superpixel_cell_px: float = 50.0  # SLIC cell size S at REFERENCE_WIDTH_PX
     superpixel_work_cell_px: float = 12.0  # SLIC runs downscaled to about this cell size
     compactness: float = 20.0  # M/S of eq. 10
@@ -154,6 +163,9 @@ class AppearanceParams:
     # gaps narrower than this (px at REFERENCE_WIDTH_PX) inside an inventory object are its
     # footprint too (a railing's see-through gaps); 0 checks the class pixels only
     gap_px: float = 128.0
+    # pixels without a surface within this fraction of gap_px of the classes count as them
+    # (a railing's surface is mostly holes between its bars); 0: class pixels only
+    hole_reach: float = 0.6  # tuned, docs/TUNING.md
     dark_level: float = 24.0  # ε, added to R+G+B (0–765) so dark pixels have no chroma noise
     chroma_weight: float = 2.0  # w_c, weight of the L1 chromaticity difference (0–2)
     brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
@@ -162,6 +174,7 @@ class AppearanceParams:
     def __post_init__(self) -> None:
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
         _check(self.gap_px >= 0, "gap_px", self.gap_px, ">= 0")
+        _check(0 <= self.hole_reach <= 1, "hole_reach", self.hole_reach, "in [0, 1]")
         _check(self.dark_level > 0, "dark_level", self.dark_level, "> 0")
         _check(self.chroma_weight >= 0, "chroma_weight", self.chroma_weight, ">= 0")
         _check(self.brightness_weight >= 0, "brightness_weight", self.brightness_weight, ">= 0")

@@ -10,6 +10,7 @@ from streetcd.appearance import (
     appearance_change,
     colour_distance,
     fill_nearest,
+    footprint,
     transfer_colours,
 )
 from streetcd.params import AppearanceParams
@@ -134,3 +135,36 @@ def test_fill_nearest_takes_the_closest_surface_colour():
     out = fill_nearest(ref, valid, np.ones((3, 5), bool))
     assert tuple(out[1, 1]) == (10, 0, 0) and tuple(out[1, 3]) == (0, 20, 0)
     assert np.array_equal(out[:, [0, 4]], ref[:, [0, 4]])
+
+
+def test_holes_between_sparse_bars_join_the_railing_footprint():
+    """A railing's surface is mostly holes: the triangles between its thin bars and the wall
+    behind are dropped. Bars 60 px apart leave gaps twice as wide as a 31 px closing disc;
+    the holes next to them count as the railing when ``hole_reach`` > 0."""
+    classes = np.full((120, 400), cls.BUILDING, np.uint8)
+    holes = np.zeros(classes.shape, bool)
+    holes[40:80, 20:380] = True
+    for c in range(20, 380, 60):
+        classes[40:80, c : c + 2] = cls.RAILING
+        holes[40:80, c : c + 2] = False
+    between = (slice(46, 74), slice(22, 320))
+    plain = footprint(classes, (cls.RAILING,), 31)
+    assert plain[between].mean() < 0.05
+    joined = footprint(classes, (cls.RAILING,), 31, holes=holes, hole_reach=1.0)
+    assert joined[between].mean() > 0.95
+    assert not joined[:30].any() and not joined[90:].any() and not joined[:, 395:].any()
+
+
+def test_registration_bands_are_opened_away_and_objects_kept():
+    ref, classes = _scene()
+    valid = np.ones((H, W), bool)
+    shifted = np.empty_like(ref)
+    shifted[:, 2:] = ref[:, :-2]  # the same street, registered 2 px off
+    shifted[:, :2] = ref[:, :2]
+    sharp = appearance_change(shifted, ref, valid, classes)
+    assert sharp[42:48, 40:42].min() > 0.5  # the wall where the scan has the board's edge
+    assert appearance_change(shifted, ref, valid, classes, registration_px=2).max() == 0.0
+    changed = shifted.copy()
+    changed[40:50, 40:60] = (40, 40, 200)  # the board is now blue: a change 20 × 10 px
+    a = appearance_change(changed, ref, valid, classes, registration_px=2)
+    assert a[40:50, 40:60].min() > 0.5  # keeps its whole extent

@@ -174,6 +174,32 @@ def test_a_board_missing_from_the_cloud_is_detected(images):
     assert np.array_equal(result.origin, ORIGIN)
 
 
+def test_the_unscanned_half_of_a_near_object_is_not_a_change(images):
+    """The scanner saw only the right half of the board (x > 0), the cameras see all of it.
+    Without the near-depth hypothesis (streetcd.silhouette) the left half, whose old surface
+    is the wall behind, is a change; with it, the neighbours sampled at the board's depth
+    agree with the image there."""
+    from dataclasses import replace
+
+    full = make_cloud(board=True)
+    keep = ~((full.classification == classes.SIGN) & (full.xyz[:, 0] < 0.0))
+    # and no ground in front of the board: its own (nearer) hypothesis would reach over the
+    # board's lower half with the wide margin this small scene needs
+    keep &= ~((full.classification == classes.GROUND) & (full.xyz[:, 1] < BOARD[0][1]))
+    half = PointCloud(full.xyz[keep], full.origin, full.classification[keep])
+    board = render(0.0)[1]
+    left = board & (np.arange(INTR.width) < INTR.cx - 5)[None, :]
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    paper = replace(PARAMS, correlate=replace(PARAMS.correlate, silhouette_margin_m=0.0))
+    without = detect_view(images["p.png"], make_view("p.png"), nbs, half, paper)
+    assert without.mask[left].mean() > 0.5
+    # 1 m at 7 m is 40 px at f = 280: the board's whole left half (32 px) is within reach
+    near = replace(PARAMS, correlate=replace(PARAMS.correlate, silhouette_margin_m=1.0))
+    result = detect_view(images["p.png"], make_view("p.png"), nbs, half, near)
+    assert result.mask[left].mean() < 0.05
+    assert result.mask.mean() < 0.005
+
+
 def test_a_board_removed_from_a_plain_wall_is_seen_only_by_the_reference_colours():
     """The paper's eq. 5 cannot see it (every neighbour, sampled through the board's old
     depth, shows the same plaster); the old cloud's colours can (streetcd.appearance)."""
