@@ -9,7 +9,8 @@ warm-up (numba compilation, caches), and the median of every step is printed:
 * project + z-buffer (eq. 1–3) and surface (triangulation, rasters) for the view and its
   3 neighbours, as :func:`streetcd.detect.detect_view` does them;
 * correlate: histogram stretching of the view, the neighbours' colour envelopes and the
-  raw change (eq. 4–5);
+  raw change (eq. 4–5), with its near-depth hypothesis (:mod:`streetcd.silhouette`);
+* appearance: the reference-colour check (:mod:`streetcd.appearance`);
 * superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
 * total: :func:`detect_view` end to end (its own run, not the sum).
 
@@ -90,7 +91,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         registration_radius_px,
         stretch_histogram,
     )
-    from streetcd.detect import _raw_change_at_cell_scale
+    from streetcd.detect import _raw_change_at_cell_scale, _with_near_hypothesis
     from streetcd.graphcut import cut_changes, node_energy, superpixels
     from streetcd.surface import _zbuffer_params_for, rgb8, view_surface
     from streetcd.zbuffer import project_cloud, weighted_zbuffer
@@ -133,11 +134,20 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         nbs.append(Neighbour(lo, s.depth, loc.intrinsics, loc.pose, envelope=(lo, hi), lut=lut))
     surf, local, _ = surfaces[0]
     change, _ = _raw_change_at_cell_scale(stretched, surf, local, nbs, params)  # as detect_view
+    if params.correlate.silhouette_margin_m > 0 and nbs:
+        change = _with_near_hypothesis(change, stretched, surf, local, nbs, params)
     t1 = time.perf_counter()
     labels = superpixels(stretched, surf.classes, params.graphcut)
     t2 = time.perf_counter()
     if params.appearance.enabled and surf.colour is not None:
-        a = appearance_change(image, surf.colour, surf.valid, surf.classes, params.appearance)
+        a = appearance_change(
+            image,
+            surf.colour,
+            surf.valid,
+            surf.classes,
+            params.appearance,
+            registration_radius_px(local.intrinsics.width, params.correlate),
+        )
         change = np.maximum(change, np.float32(params.appearance.weight) * a)
     t3 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)
