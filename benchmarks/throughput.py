@@ -12,10 +12,12 @@ Goals: speed-up from 1 to 2 workers ≥ 1.8×; overhead ≤ 5 % at ≥ 200 views
 
 with two readings of ``Σ per-view time``: ``Σ detect`` (the detector alone: the issue's
 definition, which counts reading images, cropping the cloud and writing masks as overhead)
-and ``Σ view`` (everything the workers do for a view: read its images, its share of the
-segment's crop, detect, write the mask and overlay). ``wall`` is the flow's own wall time:
-planning, the LocalCluster's start (overlapped with planning; ``wait`` is what was left of
-it after planning), detection, publishing. The temporary Prefect server's start (~20 s, once
+and ``Σ view`` (the time each view held its worker's detection thread: the detector and what
+it waited for, its images, its share of the segment's crop, its batch's last writes; the
+worker decodes the next images, reads their EXIF, writes masks and overlays and crops the
+next segment in other threads, ahead, and that is in neither sum). ``wall`` is the flow's
+own wall time: planning, the LocalCluster's start (overlapped with planning; ``wait`` is
+what was left of it after planning), detection, publishing. The temporary Prefect server's start (~20 s, once
 per process) is outside it. An untimed warm-up first detects two views in this process to
 fill numba's on-disk cache (else each new worker process compiles the detector's kernels,
 ~30 s, inside the timed run).
@@ -116,6 +118,14 @@ def table(rows: list[dict[str, Any]]) -> str:
             f"{100 * (wall / (s['detect_s'] / w) - 1):>8.1f}% "
             f"{100 * (wall / (s['view_s'] / w) - 1):>7.1f}% "
             f"{vpm / base:>7.2f}x {100 * s['cpu_s'] / (wall * w):>7.0f}%  {s['load']}"
+        )
+    for s in rows:
+        w, n = s["workers"], max(s["n_done"], 1)
+        lines.append(
+            f"{w} worker(s): per view {1000 * s['detect_s'] / n:.0f} ms detect + "
+            f"{1000 * (s['view_s'] - s['detect_s']) / n:.1f} ms waiting on the detection thread;"
+            f" before detection {s['plan_s'] + s['wait_s']:.1f} s; the rest "
+            f"{s['wall_s'] - s['plan_s'] - s['wait_s'] - s['view_s'] / w:.1f} s"
         )
     return "\n".join(lines)
 

@@ -6,9 +6,11 @@ Dask directly (one Dask task per batch of consecutive views), so a city's thousa
 images do not become thousands of Prefect task runs.
 
 Dask: a LocalCluster of ``workers`` processes, or the cluster at ``scheduler`` /
-``$STREETCD_SCHEDULER``, started (or connected to) while the run is planned. Workers crop
-their segment's cloud from the tile store once and read their own images; only small
-records travel back.
+``$STREETCD_SCHEDULER``, started (or connected to) while the run is planned. Every batch
+is submitted as soon as the plan and the cluster are ready, before the per-segment Prefect
+task runs that publish them exist. Workers crop their segment's cloud from the tile store
+once (the next segment's while they work on this one) and read their own images; only
+small records travel back.
 
 One run at a time per index: the flow holds the index's run lock (``<index>.lock``) from
 start to end, and a second run on the same index fails at once, naming the holder.
@@ -95,10 +97,12 @@ def plan(
     task_run_name="segment {segment_id}",
 )
 def detect_segment(
-    client: Any, plan: pipeline.Plan, segment_id: str, worker: str | None
+    client: Any, plan: pipeline.Plan, segment_id: str, futures: dict[Any, pipeline.Batch]
 ) -> pipeline.RunSummary:
+    """Publish one segment's batches, submitted to Dask by the flow (``futures``, from
+    :func:`streetcd.pipeline.submit_segment`), as they complete."""
     t0 = time.perf_counter()
-    s = pipeline.detect_segment(client, plan, segment_id, worker)
+    s = pipeline.publish_segment(client, plan, futures)
     get_run_logger().info(
         "segment %s: %d views done, %d flagged, %d failed in %.1f s",
         segment_id,
@@ -160,21 +164,28 @@ def nightly(
         if segments:
             client = starting.result()
             summary.wait_s = time.perf_counter() - t0 - summary.plan_s
+            hints = pipeline.plan_workers(client, the_plan)
+            then = pipeline.next_segments(the_plan, hints)
+            # Every batch goes to Dask now, before Prefect creates the segment task runs
+            # that publish them: the workers start at once, and each batch is told which
+            # one follows it on its worker, so that the worker prepares it meanwhile.
+            submitted = {
+                s: pipeline.submit_segment(client, the_plan, s, hints[s], then[s]) for s in segments
+            }
             logger.info(
                 "dask: %s with %d worker(s), dashboard %s",
                 client.scheduler.address,
                 len(client.scheduler_info(n_workers=-1)["workers"]),
                 client.dashboard_link,
             )
-            hints = pipeline.plan_workers(client, the_plan)
-            # quote(): hand the client and the plan over as they are; Prefect would
-            # otherwise walk every dataclass in them looking for futures.
+            # quote(): hand the client, the plan and the Dask futures over as they are;
+            # Prefect would otherwise walk every dataclass in them looking for futures.
             futures = [
                 detect_segment.submit(
                     quote(client),
                     quote(the_plan),
                     s,  # type: ignore[call-overload]
-                    hints[s],
+                    quote(submitted[s]),
                 )
                 for s in segments
             ]

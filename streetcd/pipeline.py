@@ -9,8 +9,10 @@ The Prefect flow (``flows/nightly.py``) and the CLI call these; nothing here imp
 * :func:`detect_batch` runs on a Dask worker: it crops each view's cloud from the tile store
   itself, reads the images itself, runs the detector and writes masks and overlays
   atomically. Only the small :class:`~streetcd.index.ViewRecord` comes back.
-* :func:`detect_segment` submits one segment's batches (pinned, loosely, to one worker so
-  its tile cache pays) and publishes each batch in one index transaction as it completes.
+* :func:`submit_segment` submits one segment's batches (pinned, loosely, to one worker so
+  its tile cache pays, each told which batch follows it on that worker so the worker
+  prepares it meanwhile); :func:`publish_segment` publishes each batch in one index
+  transaction as it completes; :func:`detect_segment` does both.
 * :func:`run_pipeline` chains them for one run without Prefect (tests, benchmarks).
 
 Views that fail (corrupt image, no points in view, bad pose) are recorded with the error
@@ -33,7 +35,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from functools import cached_property, lru_cache
+from functools import cached_property, lru_cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -59,7 +61,11 @@ class PipelineParams:
     batch_size : views per Dask task. Small batches balance the workers at the end of a
         run; they cost little, since the batches of a segment that run on one worker share
         its cloud and surfaces (:func:`segment_cloud`).
-    min_changed_fraction : a view is flagged when more of its pixels than this changed.
+    min_changed_fraction : a view is flagged only when more of its pixels than this changed.
+    min_region_fraction : ... and when its largest changed region covers at least this share
+        of the image (0.2 %: about 4,100 px at 2 MP). Single-view artefacts are small
+        scattered regions; on the synthetic streets the largest region of an unchanged view
+        covers at most 0.17 % (docs/TUNING.md, "Which views are flagged").
     write_overlays : also write a JPEG of the image with the mask tinted red.
     """
 
@@ -67,6 +73,7 @@ class PipelineParams:
     segments: SegmentParams = field(default_factory=SegmentParams)
     batch_size: int = 4
     min_changed_fraction: float = 0.0
+    min_region_fraction: float = 0.002
     write_overlays: bool = True
 
     def __post_init__(self) -> None:
@@ -76,6 +83,8 @@ class PipelineParams:
             raise InputError(
                 f"min_changed_fraction = {self.min_changed_fraction} must be in [0, 1)"
             )
+        if not 0.0 <= self.min_region_fraction < 1.0:
+            raise InputError(f"min_region_fraction = {self.min_region_fraction} must be in [0, 1)")
 
     def hash(self) -> str:
         """16 hex digits over every parameter that changes a view's result or its segment."""
@@ -83,6 +92,7 @@ class PipelineParams:
             "detect": params_to_dict(self.detect),
             "segments": dataclasses.asdict(self.segments),
             "min_changed_fraction": self.min_changed_fraction,
+            "min_region_fraction": self.min_region_fraction,
             "write_overlays": self.write_overlays,
         }
         return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:16]
@@ -155,6 +165,15 @@ class Plan:
         """Position of ``segment_id`` in :attr:`segments_todo`."""
         return self._rank[segment_id]
 
+    def order(self, batch: Batch) -> int:
+        """Position of ``batch`` in :attr:`batches`: segments in plan order, each one's
+        batches in trajectory order (the order a worker should run them in)."""
+        return self._order[batch.key]
+
+    @cached_property
+    def _order(self) -> dict[str, int]:
+        return {b.key: k for k, b in enumerate(self.batches)}
+
     @cached_property
     def _rank(self) -> dict[str, int]:
         return {s: k for k, s in enumerate(self._by_segment)}
@@ -171,7 +190,10 @@ class Plan:
 @dataclass
 class RunSummary:
     """Counts and times of one run: ``detect_s`` the sum of per-view detector times,
-    ``view_s`` of whole per-view work (read, crop, detect, write), ``cpu_s`` its CPU time;
+    ``view_s`` of the time each view held its worker's detection thread (the detector and
+    whatever it waited for: its images, its share of the segment's crop and of its batch's
+    last writes; what the worker's I/O and crop threads did ahead is not in it), ``cpu_s``
+    the worker process's CPU time meanwhile;
     ``plan_s`` the planning, ``wait_s`` the time spent waiting for the Dask cluster after
     planning, ``wall_s`` the whole run."""
 
@@ -500,55 +522,127 @@ def warm_worker() -> None:
     """Prepare a Dask worker process before its first batch (``client.run``): import the
     detector's modules, so that the first batch does not pay for it, and keep OpenCV to the
     worker's one core: a worker thread is a core, and OpenCV's own pool would make one
-    worker use two and two workers fight over them."""
+    worker use two and two workers fight over them.
+
+    Numba's first call in a process sets up LLVM and loads the kernel from its on-disk
+    cache (~0.3 s); a background thread does that for the crop's kernel, the first one a
+    batch calls, and imports PIL for :func:`capture_time`, so that the client need not wait
+    for them and the first batch waits at most for what is left (numba's compiler lock, the
+    import lock)."""
     import cv2
 
     import streetcd.crop
     import streetcd.detect  # noqa: F401
 
     cv2.setNumThreads(1)
+    threading.Thread(target=_warm_in_background, name="streetcd-warm", daemon=True).start()
+
+
+def _warm_in_background() -> None:
+    """Call the crop's numba kernel once on one point, and import PIL (see
+    :func:`warm_worker`)."""
+    from streetcd.camera import Intrinsics, Pose
+    from streetcd.crop import in_frustum
+
+    try:
+        view = View("warm-up", Intrinsics(2, 2, 1.0, 1.0, 0.5, 0.5), Pose(np.eye(3), np.zeros(3)))
+        in_frustum(np.zeros((1, 3)), view)
+        import PIL.Image  # noqa: F401
+    except Exception as exc:  # never fails a worker: the first batch does it instead
+        log.debug("worker warm-up: %s", exc)
+
+
+class _FutureCache:
+    """The last ``size`` results of this process by key, as futures: a result being made
+    ahead (in the I/O or crop thread) is waited for, not made twice; an error is kept and
+    raised to every caller."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.items: OrderedDict[Any, Future] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def claim(self, key: Any) -> tuple[Future, bool]:
+        """The entry of ``key`` and whether it is new: whoever gets True must fill it
+        (:meth:`fill`)."""
+        with self.lock:
+            entry = self.items.get(key)
+            if entry is not None:
+                self.items.move_to_end(key)
+                return entry, False
+            entry = self.items[key] = Future()
+            while len(self.items) > self.size:
+                self.items.popitem(last=False)
+            return entry, True
+
+    @staticmethod
+    def fill(entry: Future, make: Callable[[], Any]) -> None:
+        try:
+            entry.set_result(make())
+        except Exception as exc:  # kept: whoever needs it records the error
+            entry.set_exception(exc)
+
+    def get(self, key: Any, make: Callable[[], Any]) -> Any:
+        """The result for ``key``, made now (in this thread) unless made or being made."""
+        entry, mine = self.claim(key)
+        if mine:
+            self.fill(entry, make)
+        return entry.result()
+
+    def clear(self) -> None:
+        with self.lock:
+            self.items.clear()
 
 
 class _ImageCache:
-    """The last few decoded images of this process (a view is its neighbours' neighbour).
-
-    Entries are futures, so an image being decoded ahead (:meth:`prefetch`) is waited for,
-    not decoded twice; a decoding error is kept and raised to every caller.
-    """
+    """The last few decoded images of this process (a view is its neighbours' neighbour),
+    and the capture times of the last few views, each read once, ahead of its use in the
+    I/O thread (:meth:`prefetch`) or else when first asked for."""
 
     def __init__(self, size: int = 16):
-        self.size = size
-        self.items: OrderedDict[tuple[str, float], Future] = OrderedDict()
-        self.lock = threading.Lock()
+        self.images = _FutureCache(size)
+        self.times = _FutureCache(size)
 
-    def get(self, view: View) -> np.ndarray:
+    @staticmethod
+    def _key(view: View) -> tuple[Path, tuple[str, float]]:
         if view.image is None:
             raise MissingInputError(f"view {view.name!r} has no image path")
         path = Path(view.image)
         try:
-            key = (str(path), path.stat().st_mtime)
+            return path, (str(path), path.stat().st_mtime)
         except FileNotFoundError:
             raise MissingInputError(f"image not found: {path}") from None
-        with self.lock:
-            entry = self.items.get(key)
-            mine = entry is None
-            if entry is None:
-                entry = self.items[key] = Future()
-                while len(self.items) > self.size:
-                    self.items.popitem(last=False)
-            else:
-                self.items.move_to_end(key)
-        if mine:
-            try:
-                entry.set_result(read_rgb(path, view))
-            except Exception as exc:  # kept: the view that needs it records the error
-                entry.set_exception(exc)
-        return entry.result()
 
-    def prefetch(self, views: Sequence[View]) -> None:
-        """Decode ``views``' images in this process's I/O thread, ahead of their use."""
-        for v in views:
-            _io_thread().submit(self.get, v)
+    def get(self, view: View) -> np.ndarray:
+        """(H, W, 3) uint8 RGB image of ``view`` (:func:`read_rgb`)."""
+        path, key = self._key(view)
+        return self.images.get(key, lambda: read_rgb(path, view))
+
+    def captured(self, view: View) -> str | None:
+        """:func:`capture_time` of ``view``'s image (None without one)."""
+        try:
+            path, key = self._key(view)
+        except MissingInputError:
+            return None if view.image is None else capture_time(Path(view.image))
+        return self.times.get(key, lambda: capture_time(path))
+
+    def prefetch(self, task: ViewTask) -> None:
+        """Read the capture time of ``task``'s view and decode its and its neighbours'
+        images in this process's I/O thread, ahead of their use; errors are left for the
+        view that needs them."""
+
+        def ahead() -> None:
+            with contextlib.suppress(Exception):
+                self.captured(task.view)
+            for v in (task.view, *task.neighbours):
+                with contextlib.suppress(Exception):
+                    self.get(v)
+
+        _io_thread().submit(ahead)
+
+    def clear(self) -> None:
+        self.images.clear()
+        self.times.clear()
 
 
 _images = _ImageCache()
@@ -556,12 +650,22 @@ _images = _ImageCache()
 
 @lru_cache(maxsize=1)
 def _io_thread() -> Any:
-    """This process's I/O thread: it decodes the next view's images and writes the last
-    view's mask and overlay while the detector runs (decoding and encoding run in OpenCV,
-    without the GIL), so a worker's core spends its time in the detector."""
+    """This process's I/O thread: it decodes the next view's images (and reads its EXIF)
+    and writes the last view's mask and overlay while the detector runs (decoding and
+    encoding run in OpenCV, without the GIL), so a worker's core spends its time in the
+    detector."""
     from concurrent.futures import ThreadPoolExecutor
 
     return ThreadPoolExecutor(1, thread_name_prefix="streetcd-io")
+
+
+@lru_cache(maxsize=1)
+def _crop_thread() -> Any:
+    """This process's thread for the next segment's crop (:func:`crop_ahead`), apart from
+    the I/O thread so that the next view's images are not held up behind a crop."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(1, thread_name_prefix="streetcd-crop")
 
 
 EXIF_IFD = 0x8769
@@ -616,26 +720,35 @@ def read_rgb(path: Path, view: View) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def detect_batch(batch: Batch) -> list[ViewRecord]:
+def detect_batch(batch: Batch, ahead: Batch | None = None) -> list[ViewRecord]:
     """Run the detector on every view of ``batch``; one record per view, failures included.
 
     Runs on a Dask worker: opens the tile store (cached per process), crops the segment's
     cloud (cached per process), reads the images, writes masks under
-    ``out/masks/<segment>/`` atomically. A crop this batch had to make is work done for
-    its views: its time is shared among them in their ``total_s`` and ``cpu_s``.
+    ``out/masks/<segment>/`` atomically. The time this batch waited for its crop is work
+    done for its views: it is shared among them in their ``total_s`` and ``cpu_s``.
+
+    ahead : the batch this worker is likely to run next (a hint; None when unknown). Its
+    segment's cloud is cropped in the background while this batch runs, and its first
+    view's images are decoded during this batch's last view, so that the next batch starts
+    detecting at once. Results do not depend on it.
     """
     store = _open_store(batch.store, batch.store_generation)
     tasks = batch.tasks
-    _images.prefetch([tasks[0].view, *tasks[0].neighbours])
+    _images.prefetch(tasks[0])  # found at once when the batch before fetched it ahead
     t0, c0 = time.perf_counter(), time.process_time()
-    cloud, fresh = segment_cloud(batch, store)
-    extra_s = time.perf_counter() - t0 if fresh else 0.0
-    extra_cpu = time.process_time() - c0 if fresh else 0.0
+    cloud, _ = segment_cloud(batch, store)
+    extra_s = time.perf_counter() - t0
+    extra_cpu = time.process_time() - c0
+    if ahead is not None:
+        crop_ahead(ahead)
     done = []
     for k, task in enumerate(tasks):
         if k + 1 < len(tasks):
-            _images.prefetch([tasks[k + 1].view, *tasks[k + 1].neighbours])
-        done.append(_detect_one(batch, task, store, cloud))
+            _images.prefetch(tasks[k + 1])
+        elif ahead is not None and ahead.tasks:
+            _images.prefetch(ahead.tasks[0])
+        done.append(_detect_one(batch, task, store, cloud, last=k + 1 == len(tasks)))
     t0, c0 = time.perf_counter(), time.process_time()
     records = [_written(record, writing) for record, writing in done]
     extra_s += time.perf_counter() - t0  # what the writes added after the last view
@@ -649,14 +762,12 @@ def detect_batch(batch: Batch) -> list[ViewRecord]:
     ]
 
 
-def _written(record: ViewRecord, writing: Future | None) -> ViewRecord:
-    """``record`` once its mask is on disk; failed (not flagged) if it could not be
-    written, so the index never lists a mask that is not there."""
-    if writing is None:
-        return record
-    try:
-        writing.result()
-    except Exception as exc:
+def _written(record: ViewRecord, writing: Sequence[Future]) -> ViewRecord:
+    """``record`` once its mask and overlay are on disk; failed (not flagged) if they could
+    not be written, so the index never lists a mask that is not there."""
+    errors = [exc for exc in (w.exception() for w in writing) if exc is not None]
+    if errors:
+        exc = errors[0]
         return dataclasses.replace(
             record,
             status="failed",
@@ -669,63 +780,62 @@ def _written(record: ViewRecord, writing: Future | None) -> ViewRecord:
     return record
 
 
-class _CloudCache:
-    """The last few segment clouds of this process, keyed by store, generation, segment
-    and crop views. Two: the segment being worked on and the one before, which a batch
-    stolen late by this worker may still need."""
-
-    def __init__(self, size: int = 2):
-        self.size = size
-        self.items: OrderedDict[tuple, PointCloud | None] = OrderedDict()
-        self.lock = threading.Lock()
-
-    def get(self, key: tuple) -> tuple[bool, PointCloud | None]:
-        with self.lock:
-            if key not in self.items:
-                return False, None
-            self.items.move_to_end(key)
-            return True, self.items[key]
-
-    def put(self, key: tuple, cloud: PointCloud | None) -> None:
-        with self.lock:
-            self.items[key] = cloud
-            while len(self.items) > self.size:
-                self.items.popitem(last=False)
+# The last few segment clouds of this process, keyed by store, generation, segment and
+# crop views. Three: the segment being worked on, the next one being cropped ahead
+# (:func:`crop_ahead`) and the one before, which a batch stolen late by this worker may
+# still need. None for a crop that failed.
+_clouds = _FutureCache(3)
 
 
-_clouds = _CloudCache()
-
-
-def segment_cloud(batch: Batch, store: Any) -> tuple[PointCloud | None, bool]:
-    """One crop for the views of the batch's segment (and their neighbours), shared by all
-    of its batches that run in this process: (cloud or None if the crop failed, whether it
-    was made now rather than found).
-
-    Sharing one cloud object lets the detector's surface cache build each view's surface
-    once, though it serves as the view and as a neighbour of up to three others, across
-    batch boundaries too. On failure each view crops on its own, so the error is recorded
-    against the views it concerns.
-    """
-    from streetcd.crop import crop_for_views
-
+def _cloud_key(batch: Batch) -> tuple:
     views = batch.crop_views or _batch_views(batch)
-    key = (
+    return (
         batch.store,
         batch.store_generation,
         batch.segment_id,
         batch.params.detect.max_range_m,
         tuple(v.name for v in views),
     )
-    found, cloud = _clouds.get(key)
-    if found:
-        return cloud, False
+
+
+def _crop_segment(batch: Batch, store: Any) -> PointCloud | None:
+    """The crop of :func:`segment_cloud`, None when it fails."""
+    from streetcd.crop import crop_for_views
+
+    views = batch.crop_views or _batch_views(batch)
     try:
-        cloud = crop_for_views(store, list(views), max_range_m=batch.params.detect.max_range_m)
+        return crop_for_views(store, list(views), max_range_m=batch.params.detect.max_range_m)
     except Exception as exc:  # recorded per view by _detect_one's own crop
         log.warning("segment %s: shared crop failed, cropping per view: %s", batch.segment_id, exc)
-        cloud = None
-    _clouds.put(key, cloud)
-    return cloud, True
+        return None
+
+
+def segment_cloud(batch: Batch, store: Any) -> tuple[PointCloud | None, bool]:
+    """One crop for the views of the batch's segment (and their neighbours), shared by all
+    of its batches that run in this process: (cloud or None if the crop failed, whether it
+    was made now rather than found or made ahead by :func:`crop_ahead`, which it waits for).
+
+    Sharing one cloud object lets the detector's surface cache build each view's surface
+    once, though it serves as the view and as a neighbour of up to three others, across
+    batch boundaries too. On failure each view crops on its own, so the error is recorded
+    against the views it concerns.
+    """
+    entry, mine = _clouds.claim(_cloud_key(batch))
+    if mine:
+        _clouds.fill(entry, lambda: _crop_segment(batch, store))
+    return entry.result(), mine
+
+
+def crop_ahead(batch: Batch) -> None:
+    """Start the crop of :func:`segment_cloud` for ``batch`` in this process's crop thread
+    unless it is made or being made; :func:`segment_cloud` then waits for it."""
+    entry, mine = _clouds.claim(_cloud_key(batch))
+    if mine:
+
+        def crop() -> PointCloud | None:
+            return _crop_segment(batch, _open_store(batch.store, batch.store_generation))
+
+        _crop_thread().submit(_clouds.fill, entry, crop)
 
 
 def _batch_views(batch: Batch) -> tuple[View, ...]:
@@ -735,10 +845,12 @@ def _batch_views(batch: Batch) -> tuple[View, ...]:
 
 
 def _detect_one(
-    batch: Batch, task: ViewTask, store: Any, shared: PointCloud | None
-) -> tuple[ViewRecord, Future | None]:
-    """Detect one view: its record, and the future of its outputs being written (None when
-    there are none) in the I/O thread; the record is good once that future is."""
+    batch: Batch, task: ViewTask, store: Any, shared: PointCloud | None, last: bool = False
+) -> tuple[ViewRecord, list[Future]]:
+    """Detect one view: its record, and the futures of its outputs being written (none
+    when there are none) in the I/O thread; the record is good once they are. The
+    ``last`` view of a batch, which the batch then waits for, writes its mask in this
+    thread while the I/O thread writes its overlay."""
     from streetcd.crop import crop_for_view
     from streetcd.detect import detect_view
 
@@ -752,7 +864,7 @@ def _detect_one(
     )
     t0, c0 = time.perf_counter(), time.process_time()  # CPU time: the process, one view at a time
     if view.image is not None:
-        base["captured_at"] = capture_time(Path(view.image))
+        base["captured_at"] = _images.captured(view)  # read ahead in the I/O thread
     try:
         image = _images.get(view)
         neighbours = []
@@ -769,13 +881,21 @@ def _detect_one(
         t1 = time.perf_counter()
         result = detect_view(image, view, neighbours, cloud, p.detect)
         t2 = time.perf_counter()
-        flagged = bool(result.changed_fraction > p.min_changed_fraction)
+        flagged = is_flagged(
+            result.changed_fraction, [g.pixels for g in result.regions], result.mask.size, p
+        )
         mask_path = overlay_path = None
-        writing = None
+        writing: list[Future] = []
         regions: tuple[RegionRecord, ...] = ()
         if flagged:
             mask_path, overlay_path = _output_paths(batch, task)
-            writing = _io_thread().submit(_write_outputs, batch, task, image, result.mask)
+            write = partial(_write_outputs, batch, task, image, result.mask)
+            if last and overlay_path is not None:
+                writing.append(_io_thread().submit(write, ("overlay",)))
+                writing.append(Future())
+                _FutureCache.fill(writing[-1], partial(write, ("mask",)))
+            else:
+                writing.append(_io_thread().submit(write))
             regions = tuple(_region_record(g, result.origin) for g in result.regions)
         record = ViewRecord(
             **base,
@@ -802,7 +922,21 @@ def _detect_one(
             total_s=time.perf_counter() - t0,
             cpu_s=time.process_time() - c0,
         )
-        return failed, None
+        return failed, []
+
+
+def is_flagged(
+    changed_fraction: float, region_pixels: Sequence[int], n_pixels: int, params: PipelineParams
+) -> bool:
+    """Whether a view goes into the index's flagged list: more than
+    ``params.min_changed_fraction`` of its ``n_pixels`` changed and its largest region (pixels
+    per region in ``region_pixels``) covers at least ``params.min_region_fraction`` of them."""
+    largest = max(region_pixels, default=0)
+    return (
+        changed_fraction > params.min_changed_fraction
+        and largest > 0
+        and largest >= params.min_region_fraction * n_pixels
+    )
 
 
 def _region_record(g: Any, origin: np.ndarray) -> RegionRecord:
@@ -828,17 +962,47 @@ def _output_paths(batch: Batch, task: ViewTask) -> tuple[str, str | None]:
     return str(mask_path), str(folder / "overlays" / task.segment_id / f"{stem}.overlay.jpg")
 
 
-def _write_outputs(batch: Batch, task: ViewTask, image: np.ndarray, mask: np.ndarray) -> None:
-    """Write ``mask`` (H, W) bool as a 0/255 PNG, and the overlay JPEG, atomically."""
+def _write_outputs(
+    batch: Batch,
+    task: ViewTask,
+    image: np.ndarray,
+    mask: np.ndarray,
+    parts: tuple[str, ...] = ("mask", "overlay"),
+) -> None:
+    """Write ``mask`` (H, W) bool as a 0/255 PNG, and the overlay JPEG, atomically (the
+    ``parts`` named)."""
     import cv2
 
     mask_path, overlay_path = _output_paths(batch, task)
-    _atomic_write(Path(mask_path), _encode(".png", mask.astype(np.uint8) * 255))
-    if overlay_path is None:
+    if "mask" in parts:
+        _atomic_write(Path(mask_path), _encode(".png", mask.astype(np.uint8) * 255))
+    if overlay_path is None or "overlay" not in parts:
         return
-    tint = image.copy()
-    tint[mask] = (0.5 * tint[mask] + 0.5 * np.array([255, 0, 0])).astype(np.uint8)
-    _atomic_write(Path(overlay_path), _encode(".jpg", cv2.cvtColor(tint, cv2.COLOR_RGB2BGR)))
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)  # a copy, tinted in place
+    _tint_red(bgr, mask, channel=2)
+    _atomic_write(Path(overlay_path), _encode(".jpg", bgr))
+
+
+def _tint_red(image: np.ndarray, mask: np.ndarray, channel: int = 0) -> np.ndarray:
+    """Blend ``image`` (H, W, 3) uint8 C-contiguous, in place, half-way to pure red where
+    ``mask`` (H, W) bool is set: ``⌊(v + 255) / 2⌋`` in the red ``channel`` (0 for RGB, 2 for BGR),
+    ``⌊v / 2⌋`` in the others (the overlay's ``0.5 v + 0.5 red``, truncated). A lookup
+    table and a masked copy in OpenCV, which lets the detector have the GIL meanwhile."""
+    import cv2
+
+    lut = _half_red_lut(channel)
+    pick = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
+    cv2.copyTo(cv2.LUT(image, lut), pick, image)
+    return image
+
+
+@lru_cache(maxsize=3)
+def _half_red_lut(channel: int) -> np.ndarray:
+    """(256, 1, 3) uint8 table of :func:`_tint_red` for red in ``channel``."""
+    v = np.arange(256, dtype=np.uint16)
+    lut = np.stack([v >> 1] * 3, axis=-1)
+    lut[:, channel] = (v + 255) >> 1
+    return lut.astype(np.uint8).reshape(256, 1, 3)
 
 
 def _encode(ext: str, array: np.ndarray) -> bytes:
@@ -943,33 +1107,62 @@ def plan_workers(client: Any, plan: Plan) -> dict[str, str | None]:
     return segment_workers(client, segs, [sizes[s] for s in segs])
 
 
-def detect_segment(
-    client: Any, plan: Plan, segment_id: str, worker: str | None = None
-) -> RunSummary:
-    """Submit one segment's batches and publish each in one transaction as it completes.
+def next_segments(plan: Plan, hints: dict[str, str | None]) -> dict[str, str | None]:
+    """{segment: the segment its worker (``hints``, :func:`plan_workers`) does next, or
+    None}: a worker runs its segments in plan order (:func:`submit_segment`)."""
+    out: dict[str, str | None] = {}
+    last: dict[str | None, str] = {}
+    for s in plan.segments_todo:
+        w = hints.get(s)
+        if w in last:
+            out[last[w]] = s
+        last[w] = s
+        out[s] = None
+    return out
+
+
+def submit_segment(
+    client: Any,
+    plan: Plan,
+    segment_id: str,
+    worker: str | None = None,
+    then: str | None = None,
+) -> dict[Any, Batch]:
+    """Submit one segment's batches to Dask: {future: batch}, for :func:`publish_segment`.
 
     ``worker`` is a loose restriction: the segment's batches prefer that worker (its
     segment cloud, tile cache and image cache hold the segment's data) but Dask may move
     them, and will when the worker dies. Segments earlier in the plan get a higher priority,
     so a worker finishes one segment before it starts the next, whatever the order in which
-    segments are submitted.
+    segments are submitted, and a segment's batches run in trajectory order (consecutive
+    batches share images and surfaces). ``then`` is the segment that worker does next
+    (:func:`next_segments`): each batch is told which batch follows it (``ahead`` of
+    :func:`detect_batch`), so the worker prepares that one's cloud and images while it works.
     """
-    from distributed import as_completed
-
     batches = plan.batches_of(segment_id)
-    priority = -plan.rank(segment_id)  # earlier segments first
-    futures = {
+    following = (*batches[1:], *plan.batches_of(then)[:1]) if then else batches[1:]
+    return {
         client.submit(
             detect_batch,
             b,
+            following[k] if k < len(following) else None,
             key=f"{b.key}-{plan.run_id}",
             pure=False,
             workers=[worker] if worker else None,
             allow_other_workers=True,
-            priority=priority,
+            # Earlier first. Dask would otherwise run a segment's batches, all of one
+            # priority, in no particular order, and each batch's ``ahead`` would be wrong.
+            priority=-plan.order(b),
         ): b
-        for b in batches
+        for k, b in enumerate(batches)
     }
+
+
+def publish_segment(client: Any, plan: Plan, futures: dict[Any, Batch]) -> RunSummary:
+    """Publish the batches of :func:`submit_segment` in the index, each in one transaction
+    as it completes; a batch lost (its views crashed the workers) is logged and counted."""
+    from distributed import as_completed
+
     summary = RunSummary(plan.run_id)
     with ChangeIndex(plan.index) as idx:
         for future in as_completed(futures, loop=client.loop):
@@ -992,6 +1185,18 @@ def detect_segment(
             _notify("batch", records)
             future.release()
     return summary
+
+
+def detect_segment(
+    client: Any,
+    plan: Plan,
+    segment_id: str,
+    worker: str | None = None,
+    then: str | None = None,
+) -> RunSummary:
+    """Submit one segment's batches (:func:`submit_segment`) and publish each in one
+    transaction as it completes (:func:`publish_segment`)."""
+    return publish_segment(client, plan, submit_segment(client, plan, segment_id, worker, then))
 
 
 def new_summary(plan: Plan) -> RunSummary:
@@ -1043,10 +1248,12 @@ def run_pipeline(
     with run_lock(index, "streetcd.pipeline.run_pipeline"):
         plan = plan_run(images, poses, store, index, out, params, retry_failed=retry_failed)
         summary = new_summary(plan)
-        segs = plan.segments_todo
         hint = plan_workers(client, plan)
-        with ThreadPoolExecutor(max_workers=max(1, min(8, len(segs)))) as pool:
-            for part in pool.map(lambda s: detect_segment(client, plan, s, hint[s]), segs):
+        then = next_segments(plan, hint)
+        # Every batch is submitted before any is waited for: workers start at once.
+        futures = [submit_segment(client, plan, s, hint[s], then[s]) for s in plan.segments_todo]
+        with ThreadPoolExecutor(max_workers=max(1, min(8, len(futures)))) as pool:
+            for part in pool.map(lambda f: publish_segment(client, plan, f), futures):
                 summary.merge(part)
         finish_run(plan, summary)
     summary.wall_s = time.perf_counter() - t0

@@ -75,6 +75,140 @@ def test_a_rerun_detects_nothing_and_changes_nothing(small_city, cluster, clean_
     assert plan.n_todo == plan.n_views  # other parameters: everything is due again
 
 
+def test_a_view_is_flagged_by_its_largest_region_not_by_scattered_specks():
+    params = pipeline.PipelineParams(min_region_fraction=0.002)
+    n = 1920 * 1080  # 0.2 % = 4147.2 px
+    specks = [300] * 40  # 12,000 px changed, none of it one object
+    assert not pipeline.is_flagged(sum(specks) / n, specks, n, params)
+    assert not pipeline.is_flagged(4147 / n, [4147], n, params)
+    assert pipeline.is_flagged(4148 / n, [4148], n, params)
+    assert pipeline.is_flagged(0.01, [4148, *specks], n, params)
+    assert not pipeline.is_flagged(0.0, [], n, params)
+    # min_region_fraction 0: any changed pixel flags the view (the old rule)
+    assert pipeline.is_flagged(1 / n, [1], n, pipeline.PipelineParams(min_region_fraction=0.0))
+    # both rules hold: more than min_changed_fraction changed as well
+    strict = pipeline.PipelineParams(min_changed_fraction=0.01, min_region_fraction=0.002)
+    assert not pipeline.is_flagged(5000 / n, [5000], n, strict)
+
+
+def test_the_overlay_tint_is_half_way_to_red_exactly():
+    rng = np.random.default_rng(7)
+    image = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    image[0, :3] = [[0, 0, 0], [255, 255, 255], [1, 254, 127]]  # both ends, odd and even
+    mask = rng.random((37, 53)) < 0.3
+    mask[0, :3] = True
+    want = image.copy()  # the overlay's definition: 0.5 v + 0.5 red, truncated
+    want[mask] = (0.5 * want[mask] + 0.5 * np.array([255, 0, 0])).astype(np.uint8)
+    got = pipeline._tint_red(image.copy(), mask)
+    assert np.array_equal(got, want)
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    pipeline._tint_red(bgr, mask, channel=2)
+    assert np.array_equal(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), want)
+    assert np.array_equal(pipeline._tint_red(image.copy(), np.zeros_like(mask)), image)
+
+
+class _Recorder:
+    """A stand-in for a Dask client that records what is submitted."""
+
+    def __init__(self):
+        self.calls = []
+
+    def submit(self, fn, *args, **kwargs):
+        self.calls.append((fn, args, kwargs))
+        return object()
+
+
+def test_each_batch_is_told_the_next_one_on_its_worker_and_runs_in_order(small_city, tmp_path):
+    plan = pipeline.plan_run(
+        small_city.images,
+        small_city.poses,
+        small_city.store,
+        tmp_path / "index.sqlite",
+        tmp_path,
+        pipeline.PipelineParams(batch_size=1),
+    )
+    segs = plan.segments_todo
+    assert len(segs) >= 2
+    # one worker: one chain through every segment; two: each worker its own
+    assert pipeline.next_segments(plan, dict.fromkeys(segs, "w0")) == {
+        **{a: b for a, b in zip(segs, segs[1:], strict=False)},
+        segs[-1]: None,
+    }
+    apart = {s: f"w{k}" for k, s in enumerate(segs)}
+    assert pipeline.next_segments(plan, apart) == dict.fromkeys(segs)
+    client = _Recorder()
+    for s in segs:
+        pipeline.submit_segment(client, plan, s, "w0", pipeline.next_segments(plan, {})[s])
+    batches = [args[0] for _, args, _ in client.calls]
+    assert [b.key for b in batches] == [b.key for b in plan.batches]
+    ahead = [args[1] for _, args, _ in client.calls]
+    assert [a and a.key for a in ahead] == [b.key for b in plan.batches[1:]] + [None]
+    priorities = [kw["priority"] for _, _, kw in client.calls]
+    assert priorities == sorted(priorities, reverse=True) and len(set(priorities)) == len(batches)
+    # without a next segment, a segment's last batch has nothing ahead
+    client = _Recorder()
+    pipeline.submit_segment(client, plan, segs[0], None)
+    assert client.calls[-1][1][1] is None
+
+
+def test_working_ahead_changes_no_result(small_city, tmp_path):
+    """Detecting every batch with the next one prepared ahead (its segment's crop in the
+    crop thread, its first images and EXIF in the I/O thread) gives the same records and
+    the same mask and overlay files as detecting each batch on its own."""
+    from dataclasses import replace
+
+    runs = []
+    for ahead in (False, True):
+        out = tmp_path / f"ahead-{ahead}"
+        plan = pipeline.plan_run(
+            small_city.images, small_city.poses, small_city.store, out / "index.sqlite", out, PARAMS
+        )
+        assert len(plan.segments_todo) >= 2
+        pipeline._images.clear()
+        pipeline._clouds.clear()
+        records = []
+        for k, b in enumerate(plan.batches):
+            nxt = plan.batches[k + 1] if ahead and k + 1 < len(plan.batches) else None
+            records += pipeline.detect_batch(b, nxt)
+            if nxt is not None and nxt.segment_id != b.segment_id:
+                entry, mine = pipeline._clouds.claim(pipeline._cloud_key(nxt))
+                assert not mine and entry.done()  # cropped ahead, and waited for
+        timeless = [
+            replace(
+                r,
+                detect_s=None,
+                total_s=None,
+                cpu_s=None,
+                mask_path=r.mask_path and str(Path(r.mask_path).relative_to(out)),
+                overlay_path=r.overlay_path and str(Path(r.overlay_path).relative_to(out)),
+            )
+            for r in records
+        ]
+        files = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+        runs.append((timeless, {k: v for k, v in files.items() if k.suffix != ".sqlite"}))
+    assert runs[0][0] == runs[1][0]
+    assert any(r.flagged for r in runs[0][0]) and runs[0][1] == runs[1][1]
+
+
+def test_a_mask_that_cannot_be_written_fails_its_view_and_is_not_listed(small_city, tmp_path):
+    plan = pipeline.plan_run(
+        small_city.images,
+        small_city.poses,
+        small_city.store,
+        tmp_path / "index.sqlite",
+        tmp_path,
+        PARAMS,
+    )
+    (tmp_path / "masks").write_text("a file where the masks folder goes")
+    records = [r for b in plan.batches for r in pipeline.detect_batch(b)]
+    failed = [r for r in records if r.status == "failed"]
+    assert failed, "the city has changes: some view must have had a mask to write"
+    for r in failed:
+        assert "cannot write the mask" in (r.error or "")
+        assert not r.flagged and r.mask_path is None and r.overlay_path is None
+    assert not any(r.flagged for r in records)
+
+
 def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_path):
     images = tmp_path / "images"
     shutil.copytree(small_city.images, images)
