@@ -1139,23 +1139,32 @@ def submit_segment(
     (:func:`next_segments`): each batch is told which batch follows it (``ahead`` of
     :func:`detect_batch`), so the worker prepares that one's cloud and images while it works.
     """
-    batches = plan.batches_of(segment_id)
-    following = (*batches[1:], *plan.batches_of(then)[:1]) if then else batches[1:]
     return {
         client.submit(
             detect_batch,
             b,
-            following[k] if k < len(following) else None,
+            ahead,
             key=f"{b.key}-{plan.run_id}",
             pure=False,
             workers=[worker] if worker else None,
-            allow_other_workers=True,
+            # a preference, not a restriction (Dask refuses the flag without workers=)
+            allow_other_workers=bool(worker),
             # Earlier first. Dask would otherwise run a segment's batches, all of one
             # priority, in no particular order, and each batch's ``ahead`` would be wrong.
             priority=-plan.order(b),
         ): b
-        for k, b in enumerate(batches)
+        for b, ahead in batches_ahead(plan, segment_id, then)
     }
+
+
+def batches_ahead(
+    plan: Plan, segment_id: str, then: str | None = None
+) -> list[tuple[Batch, Batch | None]]:
+    """The segment's batches in trajectory order, each with the batch its worker runs next
+    (the segment's next batch, then the first batch of ``then``; None for the last)."""
+    batches = plan.batches_of(segment_id)
+    following = (*batches[1:], *plan.batches_of(then)[:1]) if then else batches[1:]
+    return [(b, following[k] if k < len(following) else None) for k, b in enumerate(batches)]
 
 
 def publish_segment(client: Any, plan: Plan, futures: dict[Any, Batch]) -> RunSummary:

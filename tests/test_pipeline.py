@@ -107,18 +107,9 @@ def test_the_overlay_tint_is_half_way_to_red_exactly():
     assert np.array_equal(pipeline._tint_red(image.copy(), np.zeros_like(mask)), image)
 
 
-class _Recorder:
-    """A stand-in for a Dask client that records what is submitted."""
-
-    def __init__(self):
-        self.calls = []
-
-    def submit(self, fn, *args, **kwargs):
-        self.calls.append((fn, args, kwargs))
-        return object()
-
-
-def test_each_batch_is_told_the_next_one_on_its_worker_and_runs_in_order(small_city, tmp_path):
+def test_each_batch_is_told_the_next_one_on_its_worker_and_runs_in_order(
+    small_city, cluster, tmp_path
+):
     plan = pipeline.plan_run(
         small_city.images,
         small_city.poses,
@@ -130,25 +121,30 @@ def test_each_batch_is_told_the_next_one_on_its_worker_and_runs_in_order(small_c
     segs = plan.segments_todo
     assert len(segs) >= 2
     # one worker: one chain through every segment; two: each worker its own
-    assert pipeline.next_segments(plan, dict.fromkeys(segs, "w0")) == {
-        **{a: b for a, b in zip(segs, segs[1:], strict=False)},
-        segs[-1]: None,
-    }
+    chain = pipeline.next_segments(plan, dict.fromkeys(segs, "w0"))
+    assert chain == {**{a: b for a, b in zip(segs, segs[1:], strict=False)}, segs[-1]: None}
     apart = {s: f"w{k}" for k, s in enumerate(segs)}
     assert pipeline.next_segments(plan, apart) == dict.fromkeys(segs)
-    client = _Recorder()
-    for s in segs:
-        pipeline.submit_segment(client, plan, s, "w0", pipeline.next_segments(plan, {})[s])
-    batches = [args[0] for _, args, _ in client.calls]
-    assert [b.key for b in batches] == [b.key for b in plan.batches]
-    ahead = [args[1] for _, args, _ in client.calls]
-    assert [a and a.key for a in ahead] == [b.key for b in plan.batches[1:]] + [None]
-    priorities = [kw["priority"] for _, _, kw in client.calls]
-    assert priorities == sorted(priorities, reverse=True) and len(set(priorities)) == len(batches)
+    pairs = [pair for s in segs for pair in pipeline.batches_ahead(plan, s, chain[s])]
+    assert [b.key for b, _ in pairs] == [b.key for b in plan.batches]
+    assert [a and a.key for _, a in pairs] == [b.key for b in plan.batches[1:]] + [None]
     # without a next segment, a segment's last batch has nothing ahead
-    client = _Recorder()
-    pipeline.submit_segment(client, plan, segs[0], None)
-    assert client.calls[-1][1][1] is None
+    assert pipeline.batches_ahead(plan, segs[0])[-1][1] is None
+    # on a real cluster: the scheduler ranks the batches in plan (trajectory) order
+    submitted: dict = {}
+    for s in segs:
+        submitted.update(pipeline.submit_segment(cluster, plan, s, None, chain[s]))
+    keys = {f.key: b.key for f, b in submitted.items()}
+
+    def priorities(dask_scheduler, keys=tuple(keys)):
+        return {k: dask_scheduler.tasks[k].priority for k in keys if k in dask_scheduler.tasks}
+
+    records = cluster.gather(list(submitted))  # the futures keep their tasks on the scheduler
+    assert all(f.status == "finished" for f in submitted)
+    assert sum(len(r) for r in records) == plan.n_views
+    ranked = cluster.run_on_scheduler(priorities)
+    assert set(ranked) == set(keys)
+    assert [keys[k] for k in sorted(ranked, key=ranked.get)] == [b.key for b in plan.batches]
 
 
 def test_working_ahead_changes_no_result(small_city, tmp_path):
