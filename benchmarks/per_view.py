@@ -133,7 +133,9 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         lo, hi, lut = envelope_levels(img, radius, pct)
         nbs.append(Neighbour(lo, s.depth, loc.intrinsics, loc.pose, envelope=(lo, hi), lut=lut))
     surf, local, _ = surfaces[0]
-    change, _ = _raw_change_at_cell_scale(stretched, surf, local, nbs, params)  # as detect_view
+    change, _ = _raw_change_at_cell_scale(  # as detect_view
+        stretched, surf.depth, surf.classes, local, nbs, params
+    )
     if params.correlate.silhouette_margin_m > 0 and nbs:
         change = _with_near_hypothesis(change, stretched, surf, local, nbs, params)
     t1 = time.perf_counter()

@@ -357,7 +357,9 @@ def detect_view(
         lap("stretch")
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
     lap("stretch")
-    change, support = _raw_change_at_cell_scale(stretched, surf, local, used, params)
+    change, support = _raw_change_at_cell_scale(
+        stretched, surf.depth, surf.classes, local, used, params
+    )
     if params.correlate.silhouette_margin_m > 0 and used:
         change = _with_near_hypothesis(change, stretched, surf, local, used, params)
     lap("raw_change")
@@ -417,25 +419,29 @@ def _tell_no_colours() -> None:
 
 
 def _raw_change_at_cell_scale(
-    stretched: np.ndarray, surf: Any, local: View, used: Sequence[Neighbour], params: DetectParams
+    stretched: np.ndarray,
+    depth: np.ndarray,
+    classes: np.ndarray,
+    local: View,
+    used: Sequence[Neighbour],
+    params: DetectParams,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Raw change (eq. 5), computed at a resolution where a superpixel cell is about
-    ``CHANGE_CELL_PX`` wide and upsampled (bilinear).
+    """Raw change (eq. 5) of the view's (H, W) ``depth`` and ``classes`` rasters (its
+    surface, or a second depth hypothesis), computed at a resolution where a superpixel cell
+    is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear).
 
     The graph cut only sees the raw change averaged over superpixels, so sampling it 4 times
     more coarsely on a 12 MP view changes little and saves ~3/4 of its cost; a 2 MP view
     (24 px cells) is computed at full resolution. Depth and classes are resampled nearest,
     so no depth is blended across an occlusion edge.
     """
-    h, w = surf.depth.shape
+    h, w = depth.shape
     cell = scale_px(params.graphcut.superpixel_cell_px, w, minimum=2.0)
     scale = min(1.0, CHANGE_CELL_PX / cell)
     intr = local.intrinsics
     hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
     if (hs, ws) == (h, w):
-        return raw_change(
-            stretched, surf.depth, surf.classes, intr, local.pose, used, params.correlate
-        )
+        return raw_change(stretched, depth, classes, intr, local.pose, used, params.correlate)
     sx, sy = ws / w, hs / h
     small = Intrinsics(
         ws,
@@ -450,8 +456,8 @@ def _raw_change_at_cell_scale(
     change, support = raw_change(
         cv2.resize(stretched, (ws, hs), interpolation=cv2.INTER_AREA),
         # np.take: contiguous, without the (hs, W) intermediate of a[rows][:, cols]
-        np.take(np.take(surf.depth, rows, axis=0), cols, axis=1),
-        np.take(np.take(surf.classes, rows, axis=0), cols, axis=1),
+        np.take(np.take(depth, rows, axis=0), cols, axis=1),
+        np.take(np.take(classes, rows, axis=0), cols, axis=1),
         small,
         local.pose,
         used,
@@ -474,8 +480,6 @@ def _with_near_hypothesis(
     """``change`` (H, W) float32 under the near-depth hypothesis of :mod:`streetcd.silhouette`:
     where the hypothesis exists, the smaller of the two raw changes when a neighbour sees the
     nearer point, else 0 (no neighbour can tell the two apart)."""
-    from types import SimpleNamespace
-
     from streetcd.silhouette import near_depth_hypothesis
 
     near = near_depth_hypothesis(
@@ -486,8 +490,9 @@ def _with_near_hypothesis(
     )
     if not np.isfinite(near).any():
         return change
-    alt = SimpleNamespace(depth=near, classes=surf.classes)
-    near_change, near_support = _raw_change_at_cell_scale(stretched, alt, local, used, params)
+    near_change, near_support = _raw_change_at_cell_scale(
+        stretched, near, surf.classes, local, used, params
+    )
     # a pixel that may be the unscanned side of a near object and that no neighbour can
     # check at that depth gives no evidence, as a pixel that no neighbour sees (eq. 5)
     return np.where(
