@@ -9,7 +9,7 @@ warm-up (numba compilation, caches), and the median of every step is printed:
 * project + z-buffer (eq. 1–3) and surface (triangulation, rasters) for the view and its
   3 neighbours, as :func:`streetcd.detect.detect_view` does them;
 * correlate: histogram stretching of the view, the neighbours' colour envelopes and the
-  raw change (eq. 4–5), with its near-depth hypothesis (:mod:`streetcd.silhouette`);
+  raw change (eq. 4–5), with the pairwise levels and the near-depth hypothesis (:mod:`streetcd.silhouette`);
 * appearance: the reference-colour check (:mod:`streetcd.appearance`);
 * superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
 * total: :func:`detect_view` end to end (its own run, not the sum).
@@ -88,8 +88,9 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.correlate import (
         Neighbour,
         envelope_levels,
+        pair_lut,
         registration_radius_px,
-        stretch_histogram,
+        stretch_lut,
     )
     from streetcd.detect import _raw_change_at_cell_scale, _with_near_hypothesis
     from streetcd.graphcut import cut_changes, node_energy, superpixels
@@ -126,13 +127,28 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         surfaces.append((surf, local, img))
     t0 = time.perf_counter()
     pct = params.correlate.stretch_percentiles
-    stretched = stretch_histogram(image, pct)
+    view_lut = stretch_lut(image, pct)
+    stretched = cv2.LUT(image, view_lut)
+    surf, local, _ = surfaces[0]
     nbs = []
     for s, loc, img in surfaces[1:]:
         radius = registration_radius_px(loc.intrinsics.width, params.correlate)
         lo, hi, lut = envelope_levels(img, radius, pct)
+        if params.correlate.pair_gain:
+            lut = pair_lut(
+                image,
+                surf.depth,
+                local.intrinsics,
+                local.pose,
+                img,
+                s.depth,
+                loc.intrinsics,
+                loc.pose,
+                pct,
+                params.correlate.occlusion_tolerance_m,
+                lut_p=view_lut,
+            )
         nbs.append(Neighbour(lo, s.depth, loc.intrinsics, loc.pose, envelope=(lo, hi), lut=lut))
-    surf, local, _ = surfaces[0]
     change, _ = _raw_change_at_cell_scale(  # as detect_view
         stretched, surf.depth, surf.classes, local, nbs, params
     )

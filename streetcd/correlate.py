@@ -50,6 +50,8 @@ _DEFAULTS = CorrelateParams()  # frozen: one shared default instance
 
 _COLOR_RANGE = 255.0  # 8-bit channel range: C = min(1, ‖ΔRGB‖ / 255)
 _RAY_GRID_STEP_PX = 8  # distorted cameras: exact rays on this grid, bilinear in between
+PAIR_SAMPLE_STEP_PX = 8  # pair_lut samples every 8th row and column of p's surface
+PAIR_MIN_SAMPLES = 100  # ... and falls back to q's own stretch below this many shared pixels
 
 
 @dataclass(frozen=True)
@@ -147,6 +149,64 @@ def envelope_levels(
         cv2.dilate(image, kernel, borderType=cv2.BORDER_REPLICATE),
         lut,
     )
+
+
+def pair_lut(
+    image_p: np.ndarray,
+    depth_p: np.ndarray,
+    intrinsics_p: Intrinsics,
+    pose_p: Pose,
+    image_q: np.ndarray,
+    depth_q: np.ndarray,
+    intrinsics_q: Intrinsics,
+    pose_q: Pose,
+    percentiles: tuple[float, float] = (1.0, 99.0),
+    occlusion_tolerance_m: float = 0.3,
+    step: int = PAIR_SAMPLE_STEP_PX,
+    lut_p: np.ndarray | None = None,
+) -> np.ndarray:
+    """(1, 256, 3) float32 look-up table that takes ``q``'s uint8 levels into ``p``'s
+    histogram-stretched scale (:func:`stretch_lut` of ``image_p``), fitted on the pixels
+    the two views share (not in the paper).
+
+    The paper stretches each view on its own; that assumes the views show much the same
+    mix of colours. Where one view is mostly a bright façade and its neighbour is not, the
+    two stretches differ and the whole façade becomes raw change. Here ``p``'s surface is
+    sampled every ``step`` px and projected into ``q`` (pixels inside ``q`` and not hidden
+    by ``q``'s own surface, as eq. 5 uses them), and per channel ``q``'s levels are mapped
+    onto ``p``'s by matching the median and the interquartile range of the paired samples
+    (a gain and an offset; the few per cent of changed pixels hardly move them), then
+    through ``p``'s stretch. ``q``'s own :func:`stretch_lut` when fewer than
+    ``PAIR_MIN_SAMPLES`` pixels are shared.
+
+    image_* : (H, W, 3) uint8 RGB; depth_* : (H, W) float32 metres, NaN = no surface;
+    poses in the same local frame. lut_p : ``stretch_lut(image_p, percentiles)`` when the
+    caller has it (one view, several neighbours).
+    """
+    if lut_p is None:
+        lut_p = stretch_lut(image_p, percentiles)
+    d = np.ascontiguousarray(depth_p[::step, ::step])
+    rays = np.ascontiguousarray(_rays_of(intrinsics_p)[::step, ::step])
+    map_u, map_v, z_q = reproject(d, rays, pose_p, intrinsics_q, pose_q)
+    h_q, w_q = depth_q.shape
+    with np.errstate(invalid="ignore"):
+        ok = (map_u > -0.5) & (map_u < w_q - 0.5) & (map_v > -0.5) & (map_v < h_q - 0.5)
+    u = np.where(ok, np.rint(np.nan_to_num(map_u)), 0).astype(np.int64)
+    v = np.where(ok, np.rint(np.nan_to_num(map_v)), 0).astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        ok &= ~(depth_q[v, u] < z_q - np.float32(occlusion_tolerance_m))
+    if ok.sum() < PAIR_MIN_SAMPLES:
+        return stretch_lut(image_q, percentiles)
+    ps = image_p[::step, ::step][ok].astype(np.float64)
+    qs = image_q[v[ok], u[ok]].astype(np.float64)
+    levels = np.arange(256, dtype=np.float64)
+    lut = np.empty((1, 256, 3), np.float32)
+    for c in range(3):
+        p25, p50, p75 = np.percentile(ps[:, c], [25, 50, 75])
+        q25, q50, q75 = np.percentile(qs[:, c], [25, 50, 75])
+        gain = (p75 - p25) / (q75 - q25) if q75 - q25 > 1.0 else 1.0
+        lut[0, :, c] = np.interp((levels - q50) * gain + p50, levels, lut_p[0, :, c])
+    return lut
 
 
 def camera_rays(intrinsics: Intrinsics) -> np.ndarray:

@@ -42,9 +42,10 @@ from streetcd.camera import Intrinsics, backproject
 from streetcd.correlate import (
     Neighbour,
     envelope_levels,
+    pair_lut,
     raw_change,
     registration_radius_px,
-    stretch_histogram,
+    stretch_lut,
 )
 from streetcd.errors import (
     CorruptFileError,
@@ -335,6 +336,7 @@ def detect_view(
     lap("surface")
     used: list[Neighbour] = []
     names: list[str] = []
+    view_lut = stretch_lut(image, params.correlate.stretch_percentiles)
     for nb_image, nb_view in neighbours:
         nb_image = _check_image(nb_image, nb_view)
         nb_local = nb_view.local(cloud.origin)
@@ -348,6 +350,20 @@ def detect_view(
         # raw_change samples it: neither the stretched image nor a float envelope is built
         radius = registration_radius_px(nb_local.intrinsics.width, params.correlate)
         lo, hi, lut = envelope_levels(nb_image, radius, params.correlate.stretch_percentiles)
+        if params.correlate.pair_gain:
+            lut = pair_lut(
+                image,
+                surf.depth,
+                local.intrinsics,
+                local.pose,
+                nb_image,
+                nb_surf.depth,
+                nb_local.intrinsics,
+                nb_local.pose,
+                params.correlate.stretch_percentiles,
+                params.correlate.occlusion_tolerance_m,
+                lut_p=view_lut,
+            )
         used.append(
             Neighbour(
                 lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi), lut=lut
@@ -355,7 +371,7 @@ def detect_view(
         )
         names.append(nb_view.name)
         lap("stretch")
-    stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
+    stretched = cv2.LUT(np.ascontiguousarray(image), view_lut)  # = stretch_histogram(image)
     lap("stretch")
     change, support = _raw_change_at_cell_scale(
         stretched, surf.depth, surf.classes, local, used, params

@@ -89,6 +89,9 @@ class CorrelateParams:
     # > 0: pixels within f·m/z px of a nearer surface at depth z are also tested at that
     # depth (the unscanned side of near poles, streetcd.silhouette); 0 = the paper's method
     silhouette_margin_m: float = 0.2  # tuned, docs/TUNING.md
+    # True: each neighbour's levels are fitted to the view's on the pixels they share
+    # (streetcd.correlate.pair_lut); False: each image stretched on its own (the paper)
+    pair_gain: bool = True
 
     def __post_init__(self) -> None:
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")

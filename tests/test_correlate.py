@@ -13,9 +13,11 @@ from streetcd.camera import Intrinsics, backproject, look_at, pixel_grid, pixel_
 from streetcd.correlate import (
     Neighbour,
     camera_rays,
+    pair_lut,
     raw_change,
     reproject,
     stretch_histogram,
+    stretch_lut,
 )
 from streetcd.params import CorrelateParams
 
@@ -270,3 +272,27 @@ def test_uint8_envelope_with_lut_gives_the_same_raw_change_as_the_float_envelope
     got, got_support = raw_change(*args, [lut_nb], params)
     assert want.max() > 0.3  # the red patch shows
     assert np.array_equal(got, want) and np.array_equal(got_support, want_support)
+
+
+def test_pair_lut_maps_the_neighbours_levels_onto_the_views_on_shared_pixels():
+    """q is p's wall 0.5 m to the side, darker and offset (0.7 v + 30), and shows a white
+    sign over its right third where p has no surface. q's own stretch is pulled by the sign
+    and no longer meets p's; the pair fit, taken on the shared wall only, does."""
+    image_p, depth_p = render_wall(wall_pose(0.0))
+    image_q, depth_q = render_wall(wall_pose(0.5))
+    image_q = np.clip(0.7 * image_q.astype(np.float64) + 30, 0, 255).astype(np.uint8)
+    image_q[:, 110:] = 250
+    depth_p = depth_p.copy()
+    u_sign = 110 + 0.5 * 140.0 / WALL_Y  # q's column 110 as p sees it (7 px of parallax)
+    depth_p[:, int(u_sign) - 2 :] = np.nan  # p has no surface there
+    lut = pair_lut(
+        image_p, depth_p, INTR, wall_pose(0.0), image_q, depth_q, INTR, wall_pose(0.5), step=2
+    )
+    own_p, own_q = stretch_lut(image_p), stretch_lut(image_q)
+    shared = image_p[:, 10:100].reshape(-1, 3)  # p's wall; as q records it, 0.7 v + 30
+    as_q = np.clip(0.7 * shared.astype(np.float64) + 30, 0, 255).round().astype(np.int64)
+    for c in range(3):
+        want = own_p[0, shared[:, c], c]
+        assert np.median(np.abs(lut[0, as_q[:, c], c] - want)) < 4.0
+        assert np.median(np.abs(own_q[0, as_q[:, c], c] - want)) > 15.0
+    assert np.all(np.diff(lut[0], axis=0) >= 0)  # monotone: it commutes with the envelope
