@@ -86,13 +86,10 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     metric z-buffer of surface_for_view, the neighbours' uint8 colour envelopes)."""
     from streetcd.appearance import appearance_change
     from streetcd.correlate import (
-        Neighbour,
-        envelope_levels,
-        pair_lut,
         registration_radius_px,
         stretch_lut,
     )
-    from streetcd.detect import _raw_change_at_cell_scale, _with_near_hypothesis
+    from streetcd.detect import _neighbour, _raw_change_at_cell_scale, _with_near_hypothesis
     from streetcd.graphcut import cut_changes, node_energy, superpixels
     from streetcd.surface import _zbuffer_params_for, rgb8, view_surface
     from streetcd.zbuffer import project_cloud, weighted_zbuffer
@@ -130,25 +127,10 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     view_lut = stretch_lut(image, pct)
     stretched = cv2.LUT(image, view_lut)
     surf, local, _ = surfaces[0]
-    nbs = []
-    for s, loc, img in surfaces[1:]:
-        radius = registration_radius_px(loc.intrinsics.width, params.correlate)
-        lo, hi, lut = envelope_levels(img, radius, pct)
-        if params.correlate.pair_gain:
-            lut = pair_lut(
-                image,
-                surf.depth,
-                local.intrinsics,
-                local.pose,
-                img,
-                s.depth,
-                loc.intrinsics,
-                loc.pose,
-                pct,
-                params.correlate.occlusion_tolerance_m,
-                lut_p=view_lut,
-            )
-        nbs.append(Neighbour(lo, s.depth, loc.intrinsics, loc.pose, envelope=(lo, hi), lut=lut))
+    nbs = [
+        _neighbour(img, s, loc, surf, local, view_lut, image, params)
+        for s, loc, img in surfaces[1:]
+    ]
     change, _ = _raw_change_at_cell_scale(  # as detect_view
         stretched, surf.depth, surf.classes, local, nbs, params
     )

@@ -164,6 +164,7 @@ def pair_lut(
     occlusion_tolerance_m: float = 0.3,
     step: int = PAIR_SAMPLE_STEP_PX,
     lut_p: np.ndarray | None = None,
+    lut_q: np.ndarray | None = None,
 ) -> np.ndarray:
     """(1, 256, 3) float32 look-up table that takes ``q``'s uint8 levels into ``p``'s
     histogram-stretched scale (:func:`stretch_lut` of ``image_p``), fitted on the pixels
@@ -176,12 +177,12 @@ def pair_lut(
     by ``q``'s own surface, as eq. 5 uses them), and per channel ``q``'s levels are mapped
     onto ``p``'s by matching the median and the interquartile range of the paired samples
     (a gain and an offset; the few per cent of changed pixels hardly move them), then
-    through ``p``'s stretch. ``q``'s own :func:`stretch_lut` when fewer than
-    ``PAIR_MIN_SAMPLES`` pixels are shared.
+    through ``p``'s stretch. ``q``'s own :func:`stretch_lut` (``lut_q`` when given) when
+    fewer than ``PAIR_MIN_SAMPLES`` pixels are shared.
 
     image_* : (H, W, 3) uint8 RGB; depth_* : (H, W) float32 metres, NaN = no surface;
-    poses in the same local frame. lut_p : ``stretch_lut(image_p, percentiles)`` when the
-    caller has it (one view, several neighbours).
+    poses in the same local frame. lut_p, lut_q : ``stretch_lut`` of ``image_p`` and
+    ``image_q`` with ``percentiles``, when the caller has them.
     """
     if lut_p is None:
         lut_p = stretch_lut(image_p, percentiles)
@@ -196,7 +197,7 @@ def pair_lut(
     with np.errstate(invalid="ignore"):
         ok &= ~(depth_q[v, u] < z_q - np.float32(occlusion_tolerance_m))
     if ok.sum() < PAIR_MIN_SAMPLES:
-        return stretch_lut(image_q, percentiles)
+        return stretch_lut(image_q, percentiles) if lut_q is None else lut_q
     ps = image_p[::step, ::step][ok].astype(np.float64)
     qs = image_q[v[ok], u[ok]].astype(np.float64)
     levels = np.arange(256, dtype=np.float64)

@@ -346,29 +346,7 @@ def detect_view(
             lap("surface")
             continue  # a neighbour without points gives no evidence
         lap("surface")
-        # the colour envelope straight from the uint8 image, stretched only where
-        # raw_change samples it: neither the stretched image nor a float envelope is built
-        radius = registration_radius_px(nb_local.intrinsics.width, params.correlate)
-        lo, hi, lut = envelope_levels(nb_image, radius, params.correlate.stretch_percentiles)
-        if params.correlate.pair_gain:
-            lut = pair_lut(
-                image,
-                surf.depth,
-                local.intrinsics,
-                local.pose,
-                nb_image,
-                nb_surf.depth,
-                nb_local.intrinsics,
-                nb_local.pose,
-                params.correlate.stretch_percentiles,
-                params.correlate.occlusion_tolerance_m,
-                lut_p=view_lut,
-            )
-        used.append(
-            Neighbour(
-                lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi), lut=lut
-            )
-        )
+        used.append(_neighbour(nb_image, nb_surf, nb_local, surf, local, view_lut, image, params))
         names.append(nb_view.name)
         lap("stretch")
     stretched = cv2.LUT(np.ascontiguousarray(image), view_lut)  # = stretch_histogram(image)
@@ -420,6 +398,44 @@ def detect_view(
         neighbours=tuple(names),
         timings=timings,
         appearance=appearance,
+    )
+
+
+def _neighbour(
+    nb_image: np.ndarray,
+    nb_surf: Any,
+    nb_local: View,
+    surf: Any,
+    local: View,
+    view_lut: np.ndarray,
+    image: np.ndarray,
+    params: DetectParams,
+) -> Neighbour:
+    """One neighbour ready for eq. 5 (local frame): its colour envelope straight from the
+    uint8 image, looked up only where :func:`raw_change` samples it (neither a stretched
+    image nor a float envelope is built), through its own stretch or, with
+    ``correlate.pair_gain``, through :func:`streetcd.correlate.pair_lut` onto the view's
+    (``view_lut``, the view's :func:`~streetcd.correlate.stretch_lut`)."""
+    c = params.correlate
+    radius = registration_radius_px(nb_local.intrinsics.width, c)
+    lo, hi, lut = envelope_levels(nb_image, radius, c.stretch_percentiles)
+    if c.pair_gain:
+        lut = pair_lut(
+            image,
+            surf.depth,
+            local.intrinsics,
+            local.pose,
+            nb_image,
+            nb_surf.depth,
+            nb_local.intrinsics,
+            nb_local.pose,
+            c.stretch_percentiles,
+            c.occlusion_tolerance_m,
+            lut_p=view_lut,
+            lut_q=lut,
+        )
+    return Neighbour(
+        lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi), lut=lut
     )
 
 
