@@ -493,26 +493,10 @@ def _correlate_into(
             va, vb = max(v0, 0), min(v0 + 1, hq - 1)
             d2 = 0.0
             for ch in range(3):
-                top = (
-                    _level(image_q, lut, va, ua, ch) * (1.0 - fu)
-                    + _level(image_q, lut, va, ub, ch) * fu
-                )
-                bottom = (
-                    _level(image_q, lut, vb, ua, ch) * (1.0 - fu)
-                    + _level(image_q, lut, vb, ub, ch) * fu
-                )
-                low = top * (1.0 - fv) + bottom * fv
+                low = _bilinear(image_q, lut, va, vb, ua, ub, fu, fv, ch)
                 high = low
                 if envelope:  # radius 0: lo is hi, skip the second lookup
-                    top = (
-                        _level(image_hi, lut, va, ua, ch) * (1.0 - fu)
-                        + _level(image_hi, lut, va, ub, ch) * fu
-                    )
-                    bottom = (
-                        _level(image_hi, lut, vb, ua, ch) * (1.0 - fu)
-                        + _level(image_hi, lut, vb, ub, ch) * fu
-                    )
-                    high = top * (1.0 - fv) + bottom * fv
+                    high = _bilinear(image_hi, lut, va, vb, ua, ub, fu, fv, ch)
                 # distance to the envelope [low, high]: |p − q| when the radius is 0
                 diff = max(image_p[r, c, ch] - high, low - image_p[r, c, ch], 0.0)
                 d2 += diff * diff
@@ -520,6 +504,15 @@ def _correlate_into(
             if d < change[r, c]:
                 change[r, c] = d
             support[r, c] += 1
+
+
+@numba.njit(cache=True, inline="always")
+def _bilinear(image, lut, va, vb, ua, ub, fu, fv, ch):  # pragma: no cover - compiled
+    """Channel ``ch`` of ``image`` (through ``lut``, :func:`_level`) interpolated between
+    rows ``va``, ``vb`` and columns ``ua``, ``ub`` with weights ``fu``, ``fv``."""
+    top = _level(image, lut, va, ua, ch) * (1.0 - fu) + _level(image, lut, va, ub, ch) * fu
+    bottom = _level(image, lut, vb, ua, ch) * (1.0 - fu) + _level(image, lut, vb, ub, ch) * fu
+    return top * (1.0 - fv) + bottom * fv
 
 
 @numba.njit(cache=True, inline="always")
