@@ -12,6 +12,8 @@ warm-up (numba compilation, caches), and the median of every step is printed:
   raw change (eq. 4–5), with the pairwise levels and the near-depth hypothesis (:mod:`streetcd.silhouette`);
 * appearance: the reference-colour check (:mod:`streetcd.appearance`);
 * superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
+* refine: the regions' pixel outlines by colour (:mod:`streetcd.refine`) and the speckle
+  filter again;
 * total: :func:`detect_view` end to end (its own run, not the sum).
 
 Baseline in the same run: scikit-image ``slic`` on the full-resolution image with the same
@@ -53,10 +55,11 @@ STEPS = (
     "superpixels",
     "appearance",
     "graph_cut",
+    "refine",
     "sum_of_steps",
     "total",
 )
-N_STEPS = 6  # the per-step rows above sum_of_steps
+N_STEPS = 7  # the per-step rows above sum_of_steps
 
 
 def scene_for(size: tuple[int, int]) -> Path:
@@ -90,7 +93,14 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         stretch_lut,
     )
     from streetcd.detect import _neighbour, _raw_change_at_cell_scale, _with_near_hypothesis
-    from streetcd.graphcut import cut_changes, node_energy, superpixels
+    from streetcd.graphcut import (
+        cut_changes,
+        node_energy,
+        speckle_filter,
+        speckle_min_px,
+        superpixels,
+    )
+    from streetcd.refine import refine_outline
     from streetcd.surface import _zbuffer_params_for, rgb8, view_surface
     from streetcd.zbuffer import project_cloud, weighted_zbuffer
 
@@ -151,12 +161,18 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         change = np.maximum(change, np.float32(params.appearance.weight) * a)
     t3 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)
-    cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
+    cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
     t4 = time.perf_counter()
+    if params.refine.enabled and cut.mask.any():
+        width = local.intrinsics.width
+        refined = refine_outline(image, cut.mask, width, params.refine)
+        speckle_filter(refined, speckle_min_px(width, params.graphcut))
+    t5 = time.perf_counter()
     t["correlate"] = t1 - t0
     t["superpixels"] = t2 - t1
     t["appearance"] = t3 - t2
     t["graph_cut"] = t4 - t3
+    t["refine"] = t5 - t4
     t["sum_of_steps"] = sum(t[s] for s in STEPS[:N_STEPS])
     return t
 

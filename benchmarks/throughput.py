@@ -26,6 +26,14 @@ fill numba's on-disk cache (else each new worker process compiles the detector's
 process time / (wall × workers)): near 100 % on free cores; far below it, the machine is
 shared and the speed-up says more about the neighbours than about the flow. The load
 average (``os.getloadavg``) is printed before and after each run for the same reason.
+
+``ceiling`` (``--ceiling-views``, default 48): what this machine allows, without Dask or
+Prefect. One bare process detects that many views of the city's first segments, then two
+processes detect half of them each, at once (same batches, same worker settings: one
+OpenCV thread, :data:`streetcd.pipeline.WORKER_MALLOC_ENV`). Their ratio is the speed-up
+two detectors get from two cores when nothing else runs: two cores share one memory
+system, and a lone worker has the second core free for its image decoding, crops and
+writes, which two workers must fit between their detections.
 """
 
 from __future__ import annotations
@@ -78,6 +86,57 @@ def warm_up(paths: dict[str, str], folder: Path) -> None:
     plan = pipeline.plan_run(**paths, index=folder / "index.sqlite", out=folder)
     first = plan.batches[0]
     pipeline.detect_batch(dataclasses.replace(first, tasks=first.tasks[:2]))
+
+
+def _bare_detect(batches: list[Any]) -> float:
+    """Detect ``batches`` in this (spawned) process, one view untimed first: wall seconds."""
+    import cv2
+
+    from streetcd import pipeline
+
+    cv2.setNumThreads(1)
+    first = batches[0]
+    pipeline.detect_batch(dataclasses.replace(first, tasks=first.tasks[:1]))
+    t0 = time.perf_counter()
+    for k, b in enumerate(batches):
+        pipeline.detect_batch(b, batches[k + 1] if k + 1 < len(batches) else None)
+    return time.perf_counter() - t0
+
+
+def ceiling(paths: dict[str, str], folder: Path, n_views: int) -> dict[str, float]:
+    """Speed-up two bare detector processes get from two cores (module docstring): each half
+    of ``n_views`` views is detected alone, then both halves at once; the ceiling is 2 over
+    the mean slowdown of a half, so that halves of unequal cost do not count."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    from streetcd import pipeline
+
+    shutil.rmtree(folder, ignore_errors=True)
+    plan = pipeline.plan_run(**paths, index=folder / "index.sqlite", out=folder)
+    batches, n = [], 0
+    for b in plan.batches:
+        if n >= n_views:
+            break
+        batches.append(b)
+        n += len(b.tasks)
+    halves = (batches[: len(batches) // 2], batches[len(batches) // 2 :])
+    saved = {k: os.environ.get(k) for k in pipeline.WORKER_MALLOC_ENV}
+    os.environ.update(pipeline.WORKER_MALLOC_ENV)  # read by glibc when a child starts
+    try:
+        ctx = get_context("spawn")
+        with ProcessPoolExecutor(1, mp_context=ctx) as pool:
+            alone = [pool.submit(_bare_detect, h).result() for h in halves]
+        with ProcessPoolExecutor(2, mp_context=ctx) as pool:
+            together = [f.result() for f in [pool.submit(_bare_detect, h) for h in halves]]
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    slowdown = sum(t / a for t, a in zip(together, alone, strict=True)) / 2
+    return {"views": n, "alone_s": sum(alone), "slowdown": slowdown, "speedup": 2 / slowdown}
 
 
 def load() -> str:
@@ -136,30 +195,80 @@ def main() -> None:
     ap.add_argument("--workers", default="1,2", help="worker counts to compare, in order")
     ap.add_argument("--size", default="960x540", help="image size WxH")
     ap.add_argument("--batch-size", type=int, default=4)
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=3,
+        help="runs of each worker count, interleaved (1, 2, 1, 2, ...); the median is reported",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--out", help="work folder (kept, and its city reused; default a temporary one)"
     )
     ap.add_argument("--no-warmup", action="store_true", help="skip the untimed warm-up")
+    ap.add_argument(
+        "--ceiling-views",
+        type=int,
+        default=48,
+        help="views for the bare-process ceiling (0: skip it)",
+    )
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.lower().split("x"))
     from streetcd.cli.run import quiet_prefect
 
     quiet_prefect()
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="streetcd-bench-"))
-    rows = []
+    counts = [int(x) for x in args.workers.split(",")]
+    runs: dict[int, list[dict[str, Any]]] = {n: [] for n in counts}
+    bare: dict[str, float] | None = None
     try:
         paths = make_city(root, args.views, (w, h), args.seed)
         if not args.no_warmup:
             warm_up(paths, root / "warmup")
-        for workers in (int(x) for x in args.workers.split(",")):
-            rows.append(measure(paths, root / f"run-{workers}w", workers, args.batch_size))
-            print(f"{workers} worker(s): {rows[-1]['wall_s']:.1f} s", flush=True)
+        if args.ceiling_views > 0:
+            bare = ceiling(paths, root / "ceiling", args.ceiling_views)
+        # Interleaved, so that a slow spell of the machine falls on both counts alike.
+        for k in range(args.repeat):
+            for workers in counts:
+                runs[workers].append(
+                    measure(paths, root / f"run-{workers}w", workers, args.batch_size)
+                )
+                print(
+                    f"run {k + 1}/{args.repeat}, {workers} worker(s): "
+                    f"{runs[workers][-1]['wall_s']:.1f} s",
+                    flush=True,
+                )
     finally:
         if not args.out:
             shutil.rmtree(root, ignore_errors=True)
-    print(f"\n{args.views} views of {w}x{h}, batch size {args.batch_size}, {os.cpu_count()} cores")
+    rows = [median_run(runs[n]) for n in counts if runs[n]]
+    if not rows:
+        print(ceiling_line(bare) if bare else "nothing measured (--repeat 0, --ceiling-views 0)")
+        return
+    print(
+        f"\n{args.views} views of {w}x{h}, batch size {args.batch_size}, {os.cpu_count()} cores, "
+        f"median of {args.repeat} run(s) by wall time"
+    )
     print(table(rows))
+    for n in counts:
+        walls = ", ".join(f"{s['wall_s']:.1f}" for s in runs[n])
+        print(f"{n} worker(s): wall of each run {walls} s")
+    if bare is not None:
+        print(ceiling_line(bare))
+
+
+def ceiling_line(bare: dict[str, float]) -> str:
+    return (
+        f"ceiling: {bare['views']:.0f} views, two halves detected by bare processes alone "
+        f"({bare['alone_s']:.1f} s) and at once: each {100 * (bare['slowdown'] - 1):.1f} % "
+        f"slower, {bare['speedup']:.2f}x without Dask or Prefect"
+    )
+
+
+def median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The run with the median wall time (the lower middle one of an even count)."""
+    ordered = sorted(runs, key=lambda s: s["wall_s"])
+    return ordered[(len(ordered) - 1) // 2]
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ import numpy as np
 from streetcd.params import AppearanceParams, scale_px
 
 _DEFAULTS = AppearanceParams()
+_NEAREST = cv2.INTER_NEAREST_EXACT  # integer upscaling: each block's value on its f × f pixels
 CLOSE_WORK_PX = 16  # the footprint's closing runs on blocks where its disc is about this wide
 STAT_STRIDE = 4  # colour statistics on every 4th row and column: 1/16 of the pixels suffice
 
@@ -128,16 +129,24 @@ def footprint(
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, disc)
     h, w = mask.shape
-    return mask | (np.repeat(np.repeat(closed, f, axis=0), f, axis=1)[:h, :w] > 0)
+    if f == 1:
+        return mask | (closed > 0)
+    big = cv2.resize(closed, (closed.shape[1] * f, closed.shape[0] * f), interpolation=_NEAREST)
+    return mask | (big[:h, :w] > 0)
 
 
 def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
-    """(ceil(H/f), ceil(W/f)) uint8: 1 where any pixel of the f × f block of ``mask`` is set."""
+    """(ceil(H/f), ceil(W/f)) uint8: 1 where any pixel of the f × f block of ``mask`` is set
+    (an f × f dilation anchored at the block's corner, read at every f-th pixel: OpenCV's
+    separable max is ~10× numpy's max over the reshaped blocks)."""
+    if f == 1:
+        return mask.astype(np.uint8)
     h, w = mask.shape
     hb, wb = -(-h // f), -(-w // f)
     blocks = np.zeros((hb * f, wb * f), np.uint8)
     blocks[:h, :w] = mask
-    return blocks.reshape(hb, f, wb, f).max(axis=(1, 3))
+    grown = cv2.dilate(blocks, np.ones((f, f), np.uint8), anchor=(0, 0), borderValue=0)
+    return np.ascontiguousarray(grown[::f, ::f])
 
 
 def fill_nearest(

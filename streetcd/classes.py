@@ -33,8 +33,12 @@ NAMES: dict[int, str] = {
 }
 
 # Classes whose raw change the detector down-weights (paper §3.3: "a small weight to the raw
-# changes that reside in the class of the trees and roads").
-LOW_WEIGHT = (VEGETATION, ROAD)
+# changes that reside in the class of the trees and roads"). We add the ground (sidewalks,
+# verges) for the paper's reason for roads: a car parked since the scan hides the kerb and
+# the sidewalk from the neighbours that the view sees past it, and a patch of sidewalk
+# between two cars became change (docs/TUNING.md). Objects standing on the ground keep their
+# full weight where the old surface behind them is a wall, a pole or a sign.
+LOW_WEIGHT = (VEGETATION, ROAD, GROUND)
 
 # Classes whose reference colours the appearance check compares with the image
 # (:mod:`streetcd.appearance`): the street inventory a city keeps, where "is the object

@@ -9,7 +9,9 @@
    paper; :mod:`streetcd.appearance`) as ``max(C_p, k · A_p)``;
 3. node energy (eq. 7), class-aware superpixels (eq. 10–11), graph cut (eq. 6, 8–9) and
    speckle filter (:mod:`streetcd.graphcut`);
-4. the changed regions: 8-connected components of the mask, each with a score (mean node
+4. each changed region's outline redrawn at pixel level by colour, within half a superpixel
+   of the cut's (not in the paper; :mod:`streetcd.refine`), and the speckle filter again;
+5. the changed regions: 8-connected components of the mask, each with a score (mean node
    energy), its 3D centroid and extent from the depth raster and the dominant class.
 
 Below it, file-level helpers for the CLI and the flows: :func:`read_image`,
@@ -54,9 +56,16 @@ from streetcd.errors import (
     InputError,
     MissingInputError,
 )
-from streetcd.graphcut import cut_changes, nearest_index, node_energy
+from streetcd.graphcut import (
+    cut_changes,
+    nearest_index,
+    node_energy,
+    speckle_filter,
+    speckle_min_px,
+)
 from streetcd.io.las import PointCloud
 from streetcd.params import DetectParams, scale_px
+from streetcd.refine import refine_outline
 from streetcd.views import PoseSet, View
 
 _DEFAULTS = DetectParams()  # frozen: one shared default instance
@@ -104,7 +113,8 @@ class DetectionResult:
     ``neighbours`` (names of the neighbours used), ``timings`` (seconds per step),
     ``appearance`` (H, W) float32 ``A_p`` of :mod:`streetcd.appearance` in [0, 1], or None
     when the check is off or the cloud has no colours. The node energy is eq. 7 of
-    ``max(raw_change, weight · appearance)``.
+    ``max(raw_change, weight · appearance)``. ``cut_mask`` (H, W) bool is the superpixel
+    cut's mask before :mod:`streetcd.refine` redrew its outlines (``mask`` when that is off).
     """
 
     mask: np.ndarray
@@ -123,6 +133,7 @@ class DetectionResult:
     neighbours: tuple[str, ...] = ()
     timings: dict[str, float] = field(default_factory=dict)
     appearance: np.ndarray | None = None
+    cut_mask: np.ndarray | None = None
 
 
 def _check_image(image: np.ndarray, view: View) -> np.ndarray:
@@ -376,13 +387,19 @@ def detect_view(
     lap("node_energy")
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut)
     lap("graphcut")
+    mask = cut.mask
+    if params.refine.enabled and mask.any():
+        width = local.intrinsics.width
+        mask = refine_outline(image, mask, width, params.refine)
+        mask = speckle_filter(mask, speckle_min_px(width, params.graphcut))
+        lap("refine")
     region_labels, regions = changed_regions(
-        cut.mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
+        mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
     )
     lap("regions")
     score = max((r.score for r in regions), default=0.0)
     return DetectionResult(
-        mask=cut.mask,
+        mask=mask,
         raw_change=change,
         node_energy=energy,
         superpixels=cut.superpixels,
@@ -390,7 +407,7 @@ def detect_view(
         classes=surf.classes,
         regions=regions,
         score=float(score),
-        changed_fraction=float(cut.mask.mean()),
+        changed_fraction=float(mask.mean()),
         origin=np.asarray(cloud.origin, np.float64),
         region_labels=region_labels,
         support=support,
@@ -398,6 +415,7 @@ def detect_view(
         neighbours=tuple(names),
         timings=timings,
         appearance=appearance,
+        cut_mask=cut.mask,
     )
 
 

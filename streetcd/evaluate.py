@@ -194,11 +194,12 @@ def evaluate_view(
                 extra[f"fused_threshold_{t}"] = _score(
                     threshold_baseline(fused, t), truth, result.classes
                 )
-            # the paper's method: the same run without the reference-colour check
+            # the paper's method: the same raw change, cut without the reference-colour check
+            # and left with the superpixel outlines (no streetcd.refine)
             from streetcd.graphcut import node_energy
 
             energy = node_energy(result.raw_change, params.graphcut.a, params.graphcut.b)
-            mask = regraphcut(image, result, params, params.graphcut, energy=energy)
+            mask = regraphcut(image, result, params, params.graphcut, energy=energy, refine=False)
             extra["paper_method"] = _score(mask, truth, result.classes)
     return ViewOutcome(view.name, score, extra, seconds)
 
@@ -209,15 +210,18 @@ def regraphcut(
     params: DetectParams,
     gparams: GraphCutParams,
     energy: np.ndarray | None = None,
+    refine: bool = True,
 ) -> np.ndarray:
-    """The graph cut (eq. 6–9) and speckle filter again on one view's node energy (or
-    ``energy``), depth, classes and superpixels (reused: the switches of eq. 8 do not change
-    them) with other graph-cut parameters; (H, W) bool mask."""
+    """The graph cut (eq. 6–9), the speckle filter and, with ``refine`` and
+    ``params.refine.enabled``, the outline refinement (:mod:`streetcd.refine`) again on one
+    view's node energy (or ``energy``), depth, classes and superpixels (reused: the switches
+    of eq. 8 do not change them) with other graph-cut parameters; (H, W) bool mask."""
     from streetcd.correlate import stretch_histogram
-    from streetcd.graphcut import cut_changes
+    from streetcd.graphcut import cut_changes, speckle_filter, speckle_min_px
+    from streetcd.refine import refine_outline
 
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
-    return cut_changes(
+    mask = cut_changes(
         result.node_energy if energy is None else energy,
         stretched,
         result.depth,
@@ -225,6 +229,11 @@ def regraphcut(
         gparams,
         labels=result.superpixels,
     ).mask
+    if refine and params.refine.enabled and mask.any():
+        width = image.shape[1]
+        mask = refine_outline(image, mask, width, params.refine)
+        mask = speckle_filter(mask, speckle_min_px(width, gparams))
+    return mask
 
 
 def _truth(scene: Scene, rec: dict[str, Any]) -> dict[str, np.ndarray]:

@@ -81,7 +81,7 @@ class CorrelateParams:
     n_neighbours: int = 3  # the paper uses 2–3 overlapping views
     occlusion_tolerance_m: float = 0.3  # a pixel is occluded in q if q sees something closer
     stretch_percentiles: tuple[float, float] = (1.0, 99.0)  # histogram stretching per view
-    low_weight_classes: tuple[int, ...] = classes.LOW_WEIGHT  # trees and roads
+    low_weight_classes: tuple[int, ...] = classes.LOW_WEIGHT  # trees, roads (paper), ground
     low_class_weight: float = 0.2  # "a small weight" for those classes
     # colour tolerance for registration error: p's colour is compared with the range of q's
     # colours within this radius (px at REFERENCE_WIDTH_PX; 0 = the paper's pixel difference)
@@ -131,7 +131,7 @@ class GraphCutParams:
     compactness: float = 20.0  # M/S of eq. 10
     class_penalty: float = 400.0  # α of eq. 11
     color_scale: float = 10.0  # colour distance (8-bit RGB) that makes exp(−·) = 1/e, eq. 8
-    depth_scale_m: float = 0.5  # depth difference that makes exp(−·) = 1/e, eq. 8
+    depth_scale_m: float = 1.0  # depth difference that makes exp(−·) = 1/e, eq. 8 (tuned)
     use_color: bool = True  # ablation switches for the similarity terms of eq. 8
     use_depth: bool = True
     use_class: bool = True
@@ -190,6 +190,22 @@ class AppearanceParams:
 
 
 @dataclass(frozen=True)
+class RefineParams:
+    """Pixel outline of the changed regions by colour (:mod:`streetcd.refine`; an addition
+    to the paper, whose superpixel cut leaves outlines on superpixel edges).
+    ``enabled = False`` keeps the superpixel outlines."""
+
+    enabled: bool = True
+    # how far (px at REFERENCE_WIDTH_PX) the outline may move: half a 50 px superpixel cell
+    band_px: float = 25.0
+    iterations: int = 1  # GrabCut iterations (colour models re-fitted); 1 is the cheapest
+
+    def __post_init__(self) -> None:
+        _check(self.band_px >= 1, "band_px", self.band_px, ">= 1")
+        _check(self.iterations >= 1, "iterations", self.iterations, ">= 1")
+
+
+@dataclass(frozen=True)
 class DetectParams:
     """Everything one view's detection needs."""
 
@@ -198,6 +214,7 @@ class DetectParams:
     correlate: CorrelateParams = field(default_factory=CorrelateParams)
     graphcut: GraphCutParams = field(default_factory=GraphCutParams)
     appearance: AppearanceParams = field(default_factory=AppearanceParams)
+    refine: RefineParams = field(default_factory=RefineParams)
     max_range_m: float = 60.0  # points farther than this from the camera are ignored
 
     def __post_init__(self) -> None:
@@ -225,6 +242,7 @@ def _build(cls: type, values: dict[str, Any], where: str) -> Any:
             "CorrelateParams": CorrelateParams,
             "GraphCutParams": GraphCutParams,
             "AppearanceParams": AppearanceParams,
+            "RefineParams": RefineParams,
         }
         if isinstance(sub, str) and sub in nested and isinstance(value, dict):
             value = _build(nested[sub], value, f"{where}.{name}")

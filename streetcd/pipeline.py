@@ -53,6 +53,18 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 SCHEDULER_ENV = "STREETCD_SCHEDULER"
 
+# glibc settings for worker processes. Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 to
+# hand memory back to the OS early; setting any of these variables also freezes glibc's
+# mmap threshold at 128 KiB, so every raster of a view (4-24 MB each) is mmapped, faulted
+# in page by page and unmapped again: ~57,000 page faults and ~80 ms of kernel time per
+# 2 MP view, against ~5,000 and ~25 ms with the settings below (measured:
+# benchmarks/throughput.py, docs/TUNING.md). A worker that keeps its last view's memory
+# for the next one is what we want; 32 MiB is glibc's largest mmap threshold.
+WORKER_MALLOC_ENV = {
+    "MALLOC_TRIM_THRESHOLD_": str(1 << 30),
+    "MALLOC_MMAP_THRESHOLD_": str(32 << 20),
+}
+
 
 @dataclass(frozen=True)
 class PipelineParams:
@@ -1032,6 +1044,7 @@ def dask_client(
 ) -> Iterator[Any]:
     """A ``distributed.Client``: to ``scheduler`` (or ``$STREETCD_SCHEDULER``) when given,
     else to a new LocalCluster of ``workers`` processes that is closed afterwards."""
+    import dask
     from distributed import Client, LocalCluster
 
     address = scheduler or os.environ.get(SCHEDULER_ENV) or None
@@ -1043,6 +1056,7 @@ def dask_client(
         raise InputError(f"workers = {workers} must be >= 1")
     # dashboard on a free port: ``None`` would still bind 8787 and warn when it is taken.
     with (
+        dask.config.set(local_worker_config()),
         LocalCluster(
             n_workers=workers,
             threads_per_worker=threads_per_worker,
@@ -1052,6 +1066,12 @@ def dask_client(
         Client(cluster, set_as_default=False) as client,
     ):
         yield client
+
+
+def local_worker_config() -> dict[str, Any]:
+    """Dask settings for the workers of our LocalCluster (``infra/dask.yaml`` has the same
+    for workers started by hand): the malloc environment of :data:`WORKER_MALLOC_ENV`."""
+    return {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_MALLOC_ENV.items()}
 
 
 @contextlib.contextmanager

@@ -60,10 +60,13 @@ def test_smoothness_is_larger_for_similar_colours_and_depths():
     far = pair([100, 100, 100], [160, 40, 100])
     assert near == pytest.approx(math.exp(-5 / 10.0))  # colour distance 5, color_scale 10
     assert near > far > 0
-    assert pair([100] * 3, [100] * 3, 10.0, 10.25) == pytest.approx(math.exp(-0.25 / 0.5))
+    assert pair([100] * 3, [100] * 3, 10.0, 10.25) == pytest.approx(
+        math.exp(-0.25 / GraphCutParams().depth_scale_m)
+    )
     assert pair([100] * 3, [100] * 3, 10.0, 13.0) < pair([100] * 3, [100] * 3, 10.0, 10.2)
     # eq. 8 takes the smaller of the two similarities
-    assert pair([100] * 3, [103, 100, 96], 10.0, 13.0) == pytest.approx(math.exp(-3 / 0.5))
+    depth_scale = GraphCutParams().depth_scale_m
+    assert pair([100] * 3, [103, 100, 96], 10.0, 13.0) == pytest.approx(math.exp(-3 / depth_scale))
 
 
 def test_smoothness_switches_drop_their_term():
