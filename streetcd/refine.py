@@ -10,16 +10,20 @@ within half a superpixel of the detected mask (``docs/TUNING.md``).
 The outline is redrawn at pixel level with GrabCut (Rother, Kolmogorov & Blake 2004, in
 OpenCV): colour models (Gaussian mixtures) of the region and of its surroundings and a
 pixel graph cut with contrast-sensitive smoothness, the same kind of energy as eq. 6–8 with
-colour as the evidence. It runs per region, in a window around it, and may only move the
-outline within ``band_px`` of where the superpixel cut put it:
+colour as the evidence. It runs in a window around each region (regions whose windows
+would overlap share one, and one pair of colour models), and may only move the outline
+within ``band_px`` of where the superpixel cut put it:
 
 * the region shrunk by the band is the object (fixed);
 * the rest of the region is probably the object, the band outside it probably not;
 * beyond the band is not the object (fixed), and is what the background model learns from.
 
-So a region can neither vanish nor spread along a wall: what the graph cut of eq. 6 decided
-stays decided at the scale of a superpixel, and only its outline follows the image. The
-speckle filter then runs again on the result.
+So no region spreads along a wall and none wider than twice the band vanishes: what the
+graph cut of eq. 6 decided stays decided at the scale of a superpixel, and only the outline
+follows the image (a sliver narrower than that may go, if its colours are the
+surroundings'). The speckle filter then runs again on the result. GrabCut's k-means draws
+from OpenCV's random generator, which is reseeded before every call: a view gives the
+same mask on every run.
 """
 
 from __future__ import annotations
@@ -34,9 +38,11 @@ _DEFAULTS = RefineParams()
 # band: the background colour model learns from that ring.
 MIN_RING_PX = 4
 RNG_SEED = 0x5C4D  # see _grabcut
-# GrabCut runs where the band is about this wide (12 px: the band at 1920 px wide): the
-# outline of a 12 MP view costs what a 2 MP view's does.
-WORK_BAND_PX = 12
+# GrabCut runs on windows scaled so that the band is about this wide: 3/4 of a 1920 px
+# view (band 12 px), 0.36 of a 4000 px one (band 25 px), so a 12 MP view's outlines cost
+# about what a 2 MP view's do. Its max-flow dominates (~2 µs per window pixel); 12 px at
+# 1920 px kept 0.006 more kappa on one of two streets for twice the time (docs/TUNING.md).
+WORK_BAND_PX = 9
 
 
 def refine_outline(
@@ -49,9 +55,9 @@ def refine_outline(
     Returns a new (H, W) bool mask; every change moves a pixel by at most the band from the
     original outline. Without regions, or with ``params.enabled`` false, a copy of ``mask``.
 
-    Where the band is wider than ``WORK_BAND_PX`` (images wider than ~1900 px) GrabCut runs
-    on the region's window scaled down until it is that wide, and its outline is scaled
-    back up; the band is then enforced at full resolution.
+    Where the band is wider than ``WORK_BAND_PX`` (images wider than ~1500 px) GrabCut runs
+    on the window scaled down until the band is that wide, and its outline is scaled back
+    up; the band is then enforced at full resolution.
     """
     out = mask.copy()
     if not params.enabled or not mask.any():
