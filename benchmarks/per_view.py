@@ -93,14 +93,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         stretch_lut,
     )
     from streetcd.detect import _neighbour, _raw_change_at_cell_scale, _with_near_hypothesis
-    from streetcd.graphcut import (
-        cut_changes,
-        node_energy,
-        speckle_filter,
-        speckle_min_px,
-        superpixels,
-    )
-    from streetcd.refine import refine_outline
+    from streetcd.graphcut import cut_changes, node_energy, superpixels
+    from streetcd.refine import refined_mask
     from streetcd.surface import _zbuffer_params_for, rgb8, view_surface
     from streetcd.zbuffer import project_cloud, weighted_zbuffer
 
@@ -163,10 +157,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
     t4 = time.perf_counter()
-    if params.refine.enabled and cut.mask.any():
-        width = local.intrinsics.width
-        refined = refine_outline(image, cut.mask, width, params.refine)
-        speckle_filter(refined, speckle_min_px(width, params.graphcut))
+    refined_mask(image, cut.mask, params)
     t5 = time.perf_counter()
     t["correlate"] = t1 - t0
     t["superpixels"] = t2 - t1

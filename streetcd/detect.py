@@ -56,16 +56,10 @@ from streetcd.errors import (
     InputError,
     MissingInputError,
 )
-from streetcd.graphcut import (
-    cut_changes,
-    nearest_index,
-    node_energy,
-    speckle_filter,
-    speckle_min_px,
-)
+from streetcd.graphcut import cut_changes, nearest_index, node_energy
 from streetcd.io.las import PointCloud
 from streetcd.params import DetectParams, scale_px
-from streetcd.refine import refine_outline
+from streetcd.refine import refined_mask
 from streetcd.views import PoseSet, View
 
 _DEFAULTS = DetectParams()  # frozen: one shared default instance
@@ -387,12 +381,8 @@ def detect_view(
     lap("node_energy")
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut)
     lap("graphcut")
-    mask = cut.mask
-    if params.refine.enabled and mask.any():
-        width = local.intrinsics.width
-        mask = refine_outline(image, mask, width, params.refine)
-        mask = speckle_filter(mask, speckle_min_px(width, params.graphcut))
-        lap("refine")
+    mask = refined_mask(image, cut.mask, params)
+    lap("refine")
     region_labels, regions = changed_regions(
         mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
     )

@@ -217,8 +217,8 @@ def regraphcut(
     view's node energy (or ``energy``), depth, classes and superpixels (reused: the switches
     of eq. 8 do not change them) with other graph-cut parameters; (H, W) bool mask."""
     from streetcd.correlate import stretch_histogram
-    from streetcd.graphcut import cut_changes, speckle_filter, speckle_min_px
-    from streetcd.refine import refine_outline
+    from streetcd.graphcut import cut_changes
+    from streetcd.refine import refined_mask
 
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
     mask = cut_changes(
@@ -229,11 +229,7 @@ def regraphcut(
         gparams,
         labels=result.superpixels,
     ).mask
-    if refine and params.refine.enabled and mask.any():
-        width = image.shape[1]
-        mask = refine_outline(image, mask, width, params.refine)
-        mask = speckle_filter(mask, speckle_min_px(width, gparams))
-    return mask
+    return refined_mask(image, mask, replace(params, graphcut=gparams)) if refine else mask
 
 
 def _truth(scene: Scene, rec: dict[str, Any]) -> dict[str, np.ndarray]:

@@ -31,11 +31,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from streetcd.params import RefineParams, scale_px
+from streetcd.graphcut import speckle_filter, speckle_min_px
+from streetcd.params import DetectParams, RefineParams, scale_px
 
 _DEFAULTS = RefineParams()
-# The window around a group of regions reaches one band width (at least 4 px) beyond the
-# band: the background colour model learns from that ring.
+# The window around a group of regions reaches one more band width and MIN_RING_PX beyond
+# the band: the background colour model learns from that ring.
 MIN_RING_PX = 4
 RNG_SEED = 0x5C4D  # see _grabcut
 # GrabCut runs on windows scaled so that the band is about this wide: 3/4 of a 1920 px
@@ -43,6 +44,17 @@ RNG_SEED = 0x5C4D  # see _grabcut
 # about what a 2 MP view's do. Its max-flow dominates (~2 µs per window pixel); 12 px at
 # 1920 px kept 0.006 more kappa on one of two streets for twice the time (docs/TUNING.md).
 WORK_BAND_PX = 9
+
+
+def refined_mask(image: np.ndarray, mask: np.ndarray, params: DetectParams) -> np.ndarray:
+    """The cut's ``mask`` (H, W) bool after :func:`refine_outline` and the speckle filter
+    again, as :func:`streetcd.detect.detect_view` gives it; ``mask`` itself when
+    ``params.refine`` is off or nothing changed. image : (H, W, 3) uint8, the view."""
+    if not params.refine.enabled or not mask.any():
+        return mask
+    width = image.shape[1]
+    refined = refine_outline(image, mask, width, params.refine)
+    return speckle_filter(refined, speckle_min_px(width, params.graphcut))
 
 
 def refine_outline(
