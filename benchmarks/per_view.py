@@ -87,12 +87,15 @@ def _setup(size: tuple[int, int]):
 def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     """One detection split into the paper's steps (the same calls as detect_view: the
     metric z-buffer of surface_for_view, the neighbours' uint8 colour envelopes)."""
-    from streetcd.appearance import appearance_change
     from streetcd.correlate import (
-        registration_radius_px,
         stretch_lut,
     )
-    from streetcd.detect import _neighbour, _raw_change_at_cell_scale, _with_near_hypothesis
+    from streetcd.detect import (
+        _neighbour,
+        _raw_change_at_cell_scale,
+        _with_near_hypothesis,
+        fuse_appearance,
+    )
     from streetcd.graphcut import cut_changes, node_energy, superpixels
     from streetcd.refine import refined_mask
     from streetcd.surface import _zbuffer_params_for, rgb8, view_surface
@@ -143,16 +146,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     t1 = time.perf_counter()
     labels = superpixels(stretched, surf.classes, params.graphcut)
     t2 = time.perf_counter()
-    if params.appearance.enabled and surf.colour is not None:
-        a = appearance_change(
-            image,
-            surf.colour,
-            surf.valid,
-            surf.classes,
-            params.appearance,
-            registration_radius_px(local.intrinsics.width, params.correlate),
-        )
-        change = np.maximum(change, np.float32(params.appearance.weight) * a)
+    change, _ = fuse_appearance(image, surf, change, local, params)
     t3 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)

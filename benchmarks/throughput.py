@@ -28,10 +28,11 @@ shared and the speed-up says more about the neighbours than about the flow. The 
 average (``os.getloadavg``) is printed before and after each run for the same reason.
 
 ``ceiling`` (``--ceiling-views``, default 48): what this machine allows, without Dask or
-Prefect. One bare process detects that many views of the city's first segments, then two
-processes detect half of them each, at once (same batches, same worker settings: one
-OpenCV thread, :data:`streetcd.pipeline.WORKER_MALLOC_ENV`). Their ratio is the speed-up
-two detectors get from two cores when nothing else runs: two cores share one memory
+Prefect. That many views of the city's first segments are split in two halves; one bare
+process detects each half alone, then two processes detect both halves at once (same
+worker settings: one OpenCV thread, :data:`streetcd.pipeline.WORKER_MALLOC_ENV`). Two over
+a half's mean slowdown is the speed-up two detectors get from two cores when nothing else
+runs: two cores share one memory
 system, and a lone worker has the second core free for its image decoding, crops and
 writes, which two workers must fit between their detections.
 """

@@ -362,20 +362,10 @@ def detect_view(
     if params.correlate.silhouette_margin_m > 0 and used:
         change = _with_near_hypothesis(change, stretched, surf, local, used, params)
     lap("raw_change")
-    appearance = None
-    fused = change
     if params.appearance.enabled and surf.colour is None:
         _tell_no_colours()
-    if params.appearance.enabled and surf.colour is not None:
-        appearance = appearance_change(
-            image,
-            surf.colour,
-            surf.valid,
-            surf.classes,
-            params.appearance,
-            registration_radius_px(local.intrinsics.width, params.correlate),
-        )
-        fused = np.maximum(change, np.float32(params.appearance.weight) * appearance)
+    fused, appearance = fuse_appearance(image, surf, change, local, params)
+    if appearance is not None:
         lap("appearance")
     energy = node_energy(fused, params.graphcut.a, params.graphcut.b)
     lap("node_energy")
@@ -407,6 +397,25 @@ def detect_view(
         appearance=appearance,
         cut_mask=cut.mask,
     )
+
+
+def fuse_appearance(
+    image: np.ndarray, surf: Any, change: np.ndarray, local: View, params: DetectParams
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The change eq. 7 sees, ``max(C_p, k · A_p)``, and ``A_p`` (:mod:`streetcd.appearance`)
+    of the view ``image`` (H, W, 3) uint8 on its surface ``surf``; ``(change, None)`` when the
+    check is off or the surface has no colours. change : (H, W) float32 raw change."""
+    if not params.appearance.enabled or surf.colour is None:
+        return change, None
+    appearance = appearance_change(
+        image,
+        surf.colour,
+        surf.valid,
+        surf.classes,
+        params.appearance,
+        registration_radius_px(local.intrinsics.width, params.correlate),
+    )
+    return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
 
 
 def _neighbour(
