@@ -44,6 +44,7 @@ from streetcd.camera import Intrinsics, backproject
 from streetcd.correlate import (
     Neighbour,
     envelope_levels,
+    occluder_depth,
     pair_lut,
     raw_change,
     registration_radius_px,
@@ -436,6 +437,10 @@ def _neighbour(
     c = params.correlate
     radius = registration_radius_px(nb_local.intrinsics.width, c)
     lo, hi, lut = envelope_levels(nb_image, radius, c.stretch_percentiles)
+    fill = (
+        round(scale_px(c.occluder_fill_px, nb_local.intrinsics.width)) if c.occluder_fill_px else 0
+    )
+    nb_depth = occluder_depth(nb_surf.depth, fill)
     if c.pair_gain:
         lut = pair_lut(
             image,
@@ -443,7 +448,7 @@ def _neighbour(
             local.intrinsics,
             local.pose,
             nb_image,
-            nb_surf.depth,
+            nb_depth,
             nb_local.intrinsics,
             nb_local.pose,
             c.stretch_percentiles,
@@ -451,9 +456,7 @@ def _neighbour(
             lut_p=view_lut,
             lut_q=lut,
         )
-    return Neighbour(
-        lo, nb_surf.depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi), lut=lut
-    )
+    return Neighbour(lo, nb_depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi), lut=lut)
 
 
 def _tell_no_colours() -> None:

@@ -92,9 +92,14 @@ class CorrelateParams:
     # True: each neighbour's levels are fitted to the view's on the pixels they share
     # (streetcd.correlate.pair_lut); False: each image stretched on its own (the paper)
     pair_gain: bool = True
+    # holes in q's surface within this distance (px at REFERENCE_WIDTH_PX) of its surface take
+    # the nearest-by minimum depth for the occlusion test (streetcd.correlate.occluder_depth:
+    # near poles leave holes between their sparse points); 0 = holes hide nothing (the paper)
+    occluder_fill_px: float = 120.0
 
     def __post_init__(self) -> None:
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")
+        _check(self.occluder_fill_px >= 0, "occluder_fill_px", self.occluder_fill_px, ">= 0")
         lo, hi = self.stretch_percentiles
         _check(
             0 <= lo < hi <= 100,

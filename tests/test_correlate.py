@@ -13,9 +13,11 @@ from streetcd.camera import Intrinsics, backproject, look_at, pixel_grid, pixel_
 from streetcd.correlate import (
     Neighbour,
     camera_rays,
+    occluder_depth,
     pair_lut,
     raw_change,
     reproject,
+    robust_line,
     stretch_histogram,
     stretch_lut,
 )
@@ -296,3 +298,74 @@ def test_pair_lut_maps_the_neighbours_levels_onto_the_views_on_shared_pixels():
         assert np.median(np.abs(lut[0, as_q[:, c], c] - want)) < 4.0
         assert np.median(np.abs(own_q[0, as_q[:, c], c] - want)) > 15.0
     assert np.all(np.diff(lut[0], axis=0) >= 0)  # monotone: it commutes with the envelope
+
+
+def test_robust_line_fits_the_pairs_where_quartile_matching_jumps_between_colour_modes():
+    """Two colour modes (a wall at level 65, 76 % of the pairs, and one at 150, 24 %), q
+    recorded at 1/1.1 of p's levels, 3 % of the pairs moved to the other mode by
+    misregistration at the walls' boundary and 8 % changed. The upper quartile sits at the
+    edge of the lower mode, and the swaps push q's across the gap, so matching quartiles
+    (the first pair fit) gives a gain far from 1.1; the paired fit does not."""
+    rng = np.random.default_rng(0)
+    n = 20_000
+    level_p = np.where(rng.random(n) < 0.76, 65.0, 150.0) + rng.normal(0, 3, n)
+    level_q = level_p / 1.1 + rng.normal(0, 1.5, n)
+    swap = rng.random(n) < 0.03  # q's sample landed on the other wall
+    level_q[swap] = np.where(level_p[swap] < 100, 150.0, 65.0) / 1.1
+    changed = rng.random(n) < 0.08
+    level_q[changed] = rng.uniform(0, 255, changed.sum())
+    gain, offset = robust_line(level_q, level_p)
+    assert gain == pytest.approx(1.1, abs=0.02) and abs(offset) < 2.0
+    p25, p75 = np.percentile(level_p, [25, 75])
+    q25, q75 = np.percentile(level_q, [25, 75])
+    assert abs((p75 - p25) / (q75 - q25) - 1.1) > 0.2  # what quartile matching gets
+
+
+def test_robust_line_recovers_an_offset_and_falls_back_to_the_ratio_on_one_level():
+    x = np.linspace(10, 240, 500)
+    assert robust_line(x, 0.7 * x + 30) == pytest.approx((0.7, 30.0), abs=1e-6)
+    flat = np.full(500, 80.0)  # one level only: no slope to fit, the gain-only ratio
+    assert robust_line(flat, flat * 1.2 + np.random.default_rng(1).normal(0, 1, 500)) == (
+        pytest.approx(1.2, abs=0.01),
+        0.0,
+    )
+
+
+def test_occluder_depth_fills_holes_near_a_surface_with_its_nearest_minimum_only():
+    depth = np.full((40, 60), np.nan, np.float32)
+    depth[:, 30:] = 10.0  # a wall on the right half
+    depth[5:35:6, 10:20] = 2.0  # a near pole: thin streaks of surface with holes between
+    filled = occluder_depth(depth, 4)
+    have = np.isfinite(depth)
+    assert np.array_equal(filled[have], depth[have])  # pixels with a surface keep their depth
+    assert np.all(filled[8, 10:20] == 2.0)  # the pole's gaps (3 px from a streak) are hidden
+    assert np.all(filled[20, 26:30] == 10.0)  # the wall's edge reaches 4 px into the hole
+    assert np.all(filled[20, 6:10] == 2.0) and np.isnan(filled[20, 25])  # and no further
+    assert np.isnan(filled[20, 0]) and occluder_depth(depth, 0) is depth
+
+
+def test_a_wall_behind_a_near_poles_holes_gives_no_evidence_from_that_neighbour():
+    """q has a near pole 2 m in front of it that the old cloud holds only as sparse streaks
+    (the rest of it is surface holes); q's image shows the pole, p sees the wall behind it.
+    With holes hiding nothing, the pole's colour is compared with the wall: strong change.
+    With the holes filled for the occlusion test, q gives no evidence there."""
+    image_p, depth_p = render_wall(wall_pose(0.0))
+    image_q, depth_q = render_wall(wall_pose(0.6))
+    wall_levels = stretch_lut(image_q)  # q's stretch without the pole (the view's levels)
+    image_q[:, 60:100] = (20, 60, 30)  # the pole in q's image
+    depth_q[:, 60:100] = np.nan
+    depth_q[::8, 60:100] = 2.0  # its streaks of surface
+    cls = np.full(depth_p.shape, classes.BUILDING, np.uint8)
+    args = (stretch_histogram(image_p), depth_p, cls, INTR, wall_pose(0.0))
+    behind = np.zeros(depth_p.shape, bool)
+    behind[:, 72:108] = True  # p's pixels that land in the pole's columns of q (6 px parallax)
+    behind[::8] = False
+    stretched_q = cv2.LUT(image_q, wall_levels)
+    holes = Neighbour(stretched_q, depth_q, INTR, wall_pose(0.6))
+    change, support = raw_change(*args, [holes])
+    assert np.median(change[behind & (support > 0)]) > 0.3
+    assert (support[behind] > 0).mean() > 0.8
+    filled = Neighbour(holes.image, occluder_depth(depth_q, 6), INTR, wall_pose(0.6))
+    change, support = raw_change(*args, [filled])
+    assert (support[behind] > 0).mean() < 0.05
+    assert np.median(change[support > 0]) < 0.02  # the wall beside the pole still compared
