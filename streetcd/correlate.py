@@ -244,7 +244,7 @@ def robust_line(
 
 def occluder_depth(depth: np.ndarray, radius_px: int) -> np.ndarray:
     """``depth`` (H, W) float32 metres (NaN = no surface) with each hole pixel given the
-    smallest depth within ``radius_px`` (a square window; NaN where there is none), for the
+    smallest depth within about ``radius_px`` of it (NaN where there is none), for the
     occlusion test of eq. 5 only (not in the paper).
 
     The surface drops triangles with long edges (:mod:`streetcd.surface`), so an object close
@@ -254,21 +254,58 @@ def occluder_depth(depth: np.ndarray, radius_px: int) -> np.ndarray:
     Filling holes with the nearest-by minimum depth lets the pole's remaining triangles hide
     what is behind their gaps; pixels with a surface keep their own depth, and a hole next to
     something nearer only hides points farther away (less evidence, never false change).
-    A 2 MP raster takes ~4 ms (``cv2.erode``, a min filter).
+
+    The minimum is taken over blocks of ``b = max(1, radius_px // 8)`` px: per-block minima,
+    a square min filter (``cv2.erode``) of ``ceil(radius_px / b)`` blocks on them, read back
+    per block. So the window reaches ``radius_px`` and at most ``2b`` px more; ~3 ms at 2 MP
+    on one core (an exact full-resolution erode with a 117 px window takes 19 ms).
     """
     if radius_px <= 0:
         return depth
-    holes = ~(depth > 0)
-    if not holes.any():
-        return depth
-    size = 2 * int(radius_px) + 1
-    filled = cv2.erode(
-        np.where(holes, np.float32(np.inf), depth).astype(np.float32, copy=False),
-        cv2.getStructuringElement(cv2.MORPH_RECT, (size, size)),
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    block = max(1, int(radius_px) // 8)
+    minima = _block_minima(depth, block)
+    reach = -(-int(radius_px) // block)
+    minima = cv2.erode(
+        minima,
+        cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach + 1, 2 * reach + 1)),
         borderType=cv2.BORDER_REPLICATE,
     )
-    filled[np.isinf(filled)] = np.nan
-    return np.where(holes, filled, depth).astype(np.float32, copy=False)
+    return _fill_holes(depth, minima, block)
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_minima(depth, block):  # pragma: no cover - compiled
+    """(ceil(H / block), ceil(W / block)) float32 minimum of each block's surface depths,
+    +inf for a block without surface."""
+    h, w = depth.shape
+    n_cols = (w + block - 1) // block
+    out = np.full(((h + block - 1) // block, n_cols), np.inf, np.float32)
+    for r in range(h):
+        row = out[r // block]
+        for b in range(n_cols):
+            m = row[b]
+            for c in range(b * block, min((b + 1) * block, w)):
+                z = depth[r, c]
+                if z > 0.0 and z < m:
+                    m = z
+            row[b] = m
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_holes(depth, minima, block):  # pragma: no cover - compiled
+    """``depth`` with holes (not > 0) taken from their block's ``minima`` (NaN for +inf)."""
+    h, w = depth.shape
+    out = np.empty_like(depth)
+    for r in range(h):
+        row = minima[r // block]
+        for b in range(row.shape[0]):
+            fill = row[b] if row[b] < np.inf else np.float32(np.nan)
+            for c in range(b * block, min((b + 1) * block, w)):
+                z = depth[r, c]
+                out[r, c] = z if z > 0.0 else fill
+    return out
 
 
 def camera_rays(intrinsics: Intrinsics) -> np.ndarray:

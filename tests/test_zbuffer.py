@@ -8,7 +8,15 @@ import pytest
 from streetcd.camera import Intrinsics, look_at, project
 from streetcd.errors import InputError
 from streetcd.params import ZBufferParams
-from streetcd.zbuffer import block_zbuffer, project_cloud, weighted_zbuffer
+from streetcd.zbuffer import (
+    CHUNK_POINTS,
+    _box_outside,
+    _normalised_bounds,
+    block_zbuffer,
+    chunk_boxes,
+    project_cloud,
+    weighted_zbuffer,
+)
 
 W, H, F = 400, 300, 400.0
 INTR = Intrinsics(W, H, F, F, (W - 1) / 2, (H - 1) / 2)
@@ -263,6 +271,41 @@ def test_project_cloud_keeps_points_in_front_in_range_and_in_the_image():
     np.testing.assert_allclose(pts.uv, uv[expect], rtol=0, atol=1e-9)
     np.testing.assert_allclose(pts.depth, depth[expect], rtol=0, atol=1e-12)
     np.testing.assert_array_equal(pts.classes, classes[expect])
+
+
+@pytest.mark.parametrize(
+    "centre, target, max_range",
+    [
+        ([0, 0, 0], [0, 10, 0], 50.0),
+        ([0, 150, 2], [0, 100, 0], 30.0),
+        ([5, 60, 1], [40, 60, 1], 45.0),
+    ],
+)
+def test_project_cloud_skips_whole_chunks_without_losing_a_point(centre, target, max_range):
+    """A street-like cloud in scan order (sorted along the street), so that runs of
+    consecutive points are compact and most runs' boxes lie outside any one view: the
+    points kept are exactly those of the per-point test, and boxes were skipped."""
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform([-15, -20, -1], [15, 220, 20], (120_000, 3))
+    xyz = xyz[np.argsort(xyz[:, 1], kind="stable")]
+    pose = look_at(centre, target)
+    pts = project_cloud(xyz, np.zeros(len(xyz), np.uint8), INTR, pose, max_range)
+    uv, depth = project(xyz, INTR, pose)
+    with np.errstate(invalid="ignore"):
+        expect = (
+            (depth > 0)
+            & (np.linalg.norm(xyz - np.asarray(centre, float), axis=1) <= max_range)
+            & (uv[:, 0] >= -0.5)
+            & (uv[:, 0] < W - 0.5)
+            & (uv[:, 1] >= -0.5)
+            & (uv[:, 1] < H - 0.5)
+        )
+    np.testing.assert_array_equal(pts.index, np.flatnonzero(expect))
+    boxes = chunk_boxes(xyz)
+    assert boxes is chunk_boxes(xyz) and len(boxes) == -(-len(xyz) // CHUNK_POINTS)
+    bounds = _normalised_bounds(INTR)
+    skipped = [_box_outside(b, pose.R, pose.t, max_range**2, bounds) for b in boxes]
+    assert 0.3 < np.mean(skipped) < 1.0
 
 
 def test_project_cloud_drops_points_folded_into_the_image_by_distortion():
