@@ -25,8 +25,10 @@ Goal: ≤ 0.6 s per 2 MP view, ≤ 3 s per 12 MP view, ≤ 2 GB peak; both total
 against it.
 
 Each size runs in a fresh child process with the malloc settings of a flow's workers
-(:data:`streetcd.pipeline.WORKER_MALLOC_ENV`). Peak memory is measured there: ``ru_maxrss`` after loading the
-scene (cloud and 6 images) and after the detection, so the detection's own share shows.
+(:data:`streetcd.pipeline.WORKER_MALLOC_ENV`). Peak memory is measured there:
+``ru_maxrss`` after loading the scene (cloud and 6 images), after the first detection (every
+surface built: the goal's number), and at the end (the benchmark's own step-by-step run
+holds every surface at once, and the in-a-run cache four).
 """
 
 from __future__ import annotations
@@ -247,7 +249,10 @@ def run_size(size: tuple[int, int], repeat: int) -> dict:
         "points": len(scene.cloud),
         "seconds": out,
         "rss_loaded_mib": rss_loaded,
-        "rss_peak_mib": max(rss_detect, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "rss_peak_mib": rss_detect,  # the first detect_view, before anything else ran
+        # the benchmark's own later work holds more at once (steps_once keeps every surface,
+        # the in-a-run cache four), so this is not the detector's
+        "rss_end_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
 
 
@@ -291,8 +296,12 @@ def print_table(results: list[dict]) -> None:
         + "".join(f"{r['rss_loaded_mib']:>14.0f}" for r in results)
     )
     print(
-        f"{'peak RSS incl. detection (MiB)':<34}"
+        f"{'peak RSS incl. one detection':<34}"
         + "".join(f"{r['rss_peak_mib']:>14.0f}" for r in results)
+    )
+    print(
+        f"{'peak RSS, whole benchmark (MiB)':<34}"
+        + "".join(f"{r['rss_end_mib']:>14.0f}" for r in results)
     )
     goals = {"1920x1080": 0.6, "4000x3000": 3.0}
     for r in results:

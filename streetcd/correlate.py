@@ -68,6 +68,8 @@ class Neighbour:
         (:func:`envelope_levels`) and :func:`raw_change` looks each sample up as it reads
         it: the same values as the float32 envelope, without building two full-size float
         images per neighbour (at 12 MP, 2 × 144 MB and ~0.2 s).
+    holes : optional :class:`HoleDepths` of ``depth`` (:func:`hole_depths`): where ``depth``
+        has no surface, the occlusion test reads the nearby minimum depth there instead.
     """
 
     image: np.ndarray
@@ -76,6 +78,7 @@ class Neighbour:
     pose: Pose
     envelope: tuple[np.ndarray, np.ndarray] | None = None
     lut: np.ndarray | None = None
+    holes: HoleDepths | None = None
 
 
 def stretch_histogram(
@@ -165,6 +168,7 @@ def pair_lut(
     step: int = PAIR_SAMPLE_STEP_PX,
     lut_p: np.ndarray | None = None,
     lut_q: np.ndarray | None = None,
+    holes_q: HoleDepths | None = None,
 ) -> np.ndarray:
     """(1, 256, 3) float32 look-up table that takes ``q``'s uint8 levels into ``p``'s
     histogram-stretched scale (:func:`stretch_lut` of ``image_p``), fitted on the pixels
@@ -182,7 +186,8 @@ def pair_lut(
 
     image_* : (H, W, 3) uint8 RGB; depth_* : (H, W) float32 metres, NaN = no surface;
     poses in the same local frame. lut_p, lut_q : ``stretch_lut`` of ``image_p`` and
-    ``image_q`` with ``percentiles``, when the caller has them.
+    ``image_q`` with ``percentiles``, when the caller has them. holes_q : what hides the
+    points behind ``q``'s surface holes (:func:`hole_depths`), as in :func:`raw_change`.
     """
     if lut_p is None:
         lut_p = stretch_lut(image_p, percentiles)
@@ -195,7 +200,7 @@ def pair_lut(
     u = np.where(ok, np.rint(np.nan_to_num(map_u)), 0).astype(np.int64)
     v = np.where(ok, np.rint(np.nan_to_num(map_v)), 0).astype(np.int64)
     with np.errstate(invalid="ignore"):
-        ok &= ~(depth_q[v, u] < z_q - np.float32(occlusion_tolerance_m))
+        ok &= ~(_seen_depths(depth_q, holes_q, v, u) < z_q - np.float32(occlusion_tolerance_m))
     if ok.sum() < PAIR_MIN_SAMPLES:
         return stretch_lut(image_q, percentiles) if lut_q is None else lut_q
     ps = image_p[::step, ::step][ok].astype(np.float64)
@@ -242,36 +247,70 @@ def robust_line(
     return float(gain), float(offset)
 
 
-def occluder_depth(depth: np.ndarray, radius_px: int) -> np.ndarray:
-    """``depth`` (H, W) float32 metres (NaN = no surface) with each hole pixel given the
-    smallest depth within about ``radius_px`` of it (NaN where there is none), for the
-    occlusion test of eq. 5 only (not in the paper).
+@dataclass(frozen=True)
+class HoleDepths:
+    """What hides the points behind a view's surface holes (:func:`hole_depths`).
+
+    minima : (ceil(H / block), ceil(W / block)) float32 metres, +inf where nothing near.
+    block : block size in pixels of the (H, W) depth raster they belong to.
+    """
+
+    minima: np.ndarray
+    block: int
+
+
+_NO_HOLES = HoleDepths(np.full((1, 1), np.inf, np.float32), 1 << 30)  # every lookup: +inf
+
+
+def hole_depths(depth: np.ndarray, radius_px: int) -> HoleDepths | None:
+    """For each hole of ``depth`` (H, W) float32 metres (NaN = no surface), the smallest
+    depth within about ``radius_px`` of it, for the occlusion test of eq. 5 only (not in the
+    paper); None for ``radius_px`` 0.
 
     The surface drops triangles with long edges (:mod:`streetcd.surface`), so an object close
     to ``q``'s camera, a pole a few metres away, is mostly holes between its sparse points,
     and a hole hides nothing: the wall behind the pole, which ``q`` cannot see, was compared
     with the pole's colour (the largest false region on one street, a whole façade strip).
-    Filling holes with the nearest-by minimum depth lets the pole's remaining triangles hide
-    what is behind their gaps; pixels with a surface keep their own depth, and a hole next to
+    Reading the nearby minimum depth in holes lets the pole's remaining triangles hide what
+    is behind their gaps; pixels with a surface keep their own depth, and a hole next to
     something nearer only hides points farther away (less evidence, never false change).
 
-    The minimum is taken over blocks of ``b = max(1, radius_px // 8)`` px: per-block minima,
-    a square min filter (``cv2.erode``) of ``ceil(radius_px / b)`` blocks on them, read back
-    per block. So the window reaches ``radius_px`` and at most ``2b`` px more; ~3 ms at 2 MP
-    on one core (an exact full-resolution erode with a 117 px window takes 19 ms).
+    The minimum is kept per block of ``b = max(1, radius_px // 8)`` px: per-block minima,
+    then a square min filter (``cv2.erode``) of ``ceil(radius_px / b)`` blocks on them. So the
+    window reaches ``radius_px`` and at most ``2b`` px more. ~1.5 ms at 2 MP on one core, and
+    nothing full-size is built (:func:`occluder_depth` fills a full raster for inspection).
     """
     if radius_px <= 0:
-        return depth
+        return None
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     block = max(1, int(radius_px) // 8)
-    minima = _block_minima(depth, block)
     reach = -(-int(radius_px) // block)
     minima = cv2.erode(
-        minima,
+        _block_minima(depth, block),
         cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach + 1, 2 * reach + 1)),
         borderType=cv2.BORDER_REPLICATE,
     )
-    return _fill_holes(depth, minima, block)
+    return HoleDepths(minima, block)
+
+
+def occluder_depth(depth: np.ndarray, radius_px: int) -> np.ndarray:
+    """``depth`` (H, W) float32 with its holes filled as the occlusion test reads them
+    (:func:`hole_depths`; NaN where nothing is near), ``depth`` itself for radius 0."""
+    holes = hole_depths(depth, radius_px)
+    if holes is None:
+        return depth
+    return _fill_holes(np.ascontiguousarray(depth, dtype=np.float32), holes.minima, holes.block)
+
+
+def _seen_depths(
+    depth: np.ndarray, holes: HoleDepths | None, rows: np.ndarray, cols: np.ndarray
+) -> np.ndarray:
+    """``depth[rows, cols]`` with holes read from ``holes`` (+inf: nothing hides them)."""
+    seen = depth[rows, cols]
+    if holes is not None:
+        gap = ~(seen > 0)
+        seen[gap] = holes.minima[rows[gap] // holes.block, cols[gap] // holes.block]
+    return seen
 
 
 @numba.njit(cache=True, nogil=True)
@@ -410,8 +449,13 @@ def warp_neighbour(
         valid = (map_u >= -0.5) & (map_u < w_q - 0.5) & (map_v >= -0.5) & (map_v < h_q - 0.5)
     map_u[~valid] = -1e4  # finite, far outside: remap leaves the border value there
     map_v[~valid] = -1e4
+    depth_q = neighbour.depth
+    if neighbour.holes is not None:
+        depth_q = _fill_holes(
+            np.ascontiguousarray(depth_q, np.float32), neighbour.holes.minima, neighbour.holes.block
+        )
     seen = cv2.remap(
-        neighbour.depth,
+        depth_q,
         map_u,
         map_v,
         cv2.INTER_NEAREST,
@@ -494,6 +538,7 @@ def raw_change(
         q = nb.intrinsics
         radius = registration_radius_px(q.width, params)
         lo, hi = nb.envelope if nb.envelope is not None else colour_envelope(nb.image, radius)
+        holes = nb.holes if nb.holes is not None else _NO_HOLES
         lut = None
         if nb.lut is not None:
             if nb.envelope is None:
@@ -512,6 +557,8 @@ def raw_change(
             lut,
             radius > 0,
             np.ascontiguousarray(nb.depth, dtype=np.float32),
+            holes.minima,
+            holes.block,
             float(params.occlusion_tolerance_m),
             change,
             support,
@@ -540,12 +587,15 @@ def _correlate_into(
     lut,
     envelope,
     depth_q,
+    hole_minima,
+    hole_block,
     tol,
     change,
     support,
 ):  # pragma: no cover - compiled
     """For every pixel of p with a surface: project its 3D point into q, skip it if outside
-    q or occluded there (nearest pixel of q's depth closer by more than ``tol``), else sample
+    q or occluded there (nearest pixel of q's depth closer by more than ``tol``; in a hole,
+    its block's entry of ``hole_minima``, blocks of ``hole_block`` px), else sample
     q's colour envelope (``image_lo``/``image_hi``, :func:`colour_envelope`) bilinearly
     (edge pixels replicated), and lower ``change`` to the colour's distance from it.
     cam = (fx, fy, cx, cy, k1, k2, p1, p2, k3) of q. ``lut`` (256, 3) float32: the
@@ -580,8 +630,11 @@ def _correlate_into(
             v = fy * yn + cy
             if not (u >= -0.5 and u < wq - 0.5 and v >= -0.5 and v < hq - 0.5):
                 continue
-            seen = depth_q[int(v + 0.5), int(u + 0.5)]
-            if seen < zq - tol:  # NaN (no surface in q) compares False: kept
+            vi, ui = int(v + 0.5), int(u + 0.5)
+            seen = depth_q[vi, ui]
+            if not (seen > 0.0):  # a hole: what is near it hides (+inf: nothing)
+                seen = hole_minima[vi // hole_block, ui // hole_block]
+            if seen < zq - tol:
                 continue
             u0 = int(np.floor(u))
             v0 = int(np.floor(v))

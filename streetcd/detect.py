@@ -44,7 +44,7 @@ from streetcd.camera import Intrinsics, backproject
 from streetcd.correlate import (
     Neighbour,
     envelope_levels,
-    occluder_depth,
+    hole_depths,
     pair_lut,
     raw_change,
     registration_radius_px,
@@ -365,6 +365,7 @@ def detect_view(
     )
     if params.correlate.silhouette_margin_m > 0 and used:
         change = _with_near_hypothesis(change, stretched, surf, local, used, params)
+    used.clear()  # their envelopes and depths (360 MB at 12 MP) are not needed past eq. 5
     lap("raw_change")
     if params.appearance.enabled and surf.colour is None:
         _tell_no_colours()
@@ -440,10 +441,8 @@ def _neighbour(
     c = params.correlate
     radius = registration_radius_px(nb_local.intrinsics.width, c)
     lo, hi, lut = envelope_levels(nb_image, radius, c.stretch_percentiles)
-    fill = (
-        round(scale_px(c.occluder_fill_px, nb_local.intrinsics.width)) if c.occluder_fill_px else 0
-    )
-    nb_depth = occluder_depth(nb_surf.depth, fill)
+    fill = c.occluder_fill_px and round(scale_px(c.occluder_fill_px, nb_local.intrinsics.width))
+    holes = hole_depths(nb_surf.depth, int(fill))
     if c.pair_gain:
         lut = pair_lut(
             image,
@@ -451,15 +450,24 @@ def _neighbour(
             local.intrinsics,
             local.pose,
             nb_image,
-            nb_depth,
+            nb_surf.depth,
             nb_local.intrinsics,
             nb_local.pose,
             c.stretch_percentiles,
             c.occlusion_tolerance_m,
             lut_p=view_lut,
             lut_q=lut,
+            holes_q=holes,
         )
-    return Neighbour(lo, nb_depth, nb_local.intrinsics, nb_local.pose, envelope=(lo, hi), lut=lut)
+    return Neighbour(
+        lo,
+        nb_surf.depth,
+        nb_local.intrinsics,
+        nb_local.pose,
+        envelope=(lo, hi),
+        lut=lut,
+        holes=holes,
+    )
 
 
 def _tell_no_colours() -> None:
@@ -534,7 +542,8 @@ def _with_near_hypothesis(
 ) -> np.ndarray:
     """``change`` (H, W) float32 under the near-depth hypothesis of :mod:`streetcd.silhouette`:
     where the hypothesis exists, the smaller of the two raw changes when a neighbour sees the
-    nearer point, else 0 (no neighbour can tell the two apart)."""
+    nearer point, else 0 (no neighbour can tell the two apart). Updates ``change`` in place
+    and returns it."""
     from streetcd.silhouette import near_depth_hypothesis
 
     near = near_depth_hypothesis(
@@ -549,12 +558,12 @@ def _with_near_hypothesis(
         stretched, near, surf.classes, local, used, params
     )
     # a pixel that may be the unscanned side of a near object and that no neighbour can
-    # check at that depth gives no evidence, as a pixel that no neighbour sees (eq. 5)
-    return np.where(
-        near_support > 0,
-        np.minimum(change, near_change),
-        np.where(np.isfinite(near), np.float32(0.0), change),
-    )
+    # check at that depth gives no evidence, as a pixel that no neighbour sees (eq. 5);
+    # in place: at 12 MP each full-size temporary is 48 MB
+    checked = near_support > 0
+    np.minimum(change, near_change, out=change, where=checked)
+    change[~checked & np.isfinite(near)] = 0.0
+    return change
 
 
 def changed_regions(

@@ -93,7 +93,7 @@ class CorrelateParams:
     # (streetcd.correlate.pair_lut); False: each image stretched on its own (the paper)
     pair_gain: bool = True
     # holes in q's surface within this distance (px at REFERENCE_WIDTH_PX) of its surface take
-    # the nearest-by minimum depth for the occlusion test (streetcd.correlate.occluder_depth:
+    # the nearest-by minimum depth for the occlusion test (streetcd.correlate.hole_depths:
     # near poles leave holes between their sparse points); 0 = holes hide nothing (the paper)
     occluder_fill_px: float = 120.0
 
