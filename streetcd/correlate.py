@@ -219,7 +219,8 @@ def robust_line(
     """Gain and offset of ``y ≈ gain · x + offset`` over paired samples (N,) float64, robust
     to the pairs that disagree (changes, registration error at edges, shadows).
 
-    Tukey-biweight IRLS (scale: 1.4826 · MAD of the residuals), started from the gain-only
+    Tukey-biweight IRLS (scale: 1.4826 · MAD of the residuals of the start and of the first
+    fit; iterations until the fit stops moving), started from the gain-only
     fit ``median(y / x)``: a camera's exposure and white balance scale its levels (a gamma
     curve keeps a gain a gain), so that start is close. Pairs, not the two marginal
     distributions, are fitted: matching quantiles of two channels that hold a few colour
@@ -230,18 +231,29 @@ def robust_line(
     lit = (x > 8.0) & (y > 8.0)  # ratios of near-black levels are noise
     start = float(np.median(y[lit] / x[lit])) if lit.sum() >= 10 else 1.0
     gain, offset = start, 0.0
-    for _ in range(iterations):
+    scale = 0.0
+    for i in range(iterations):
         residual = y - (gain * x + offset)
-        scale = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+        if i < 2:  # the scale from the start and from the first fit, then kept
+            scale = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
         if not scale > 0.5:  # the pairs agree to half a level: nothing left to weigh
             break
         t = residual / (tukey_c * scale)
-        root_w = np.where(np.abs(t) < 1.0, 1.0 - t * t, 0.0)  # √ of Tukey's (1 − t²)²
-        kept = root_w > 0
-        if kept.sum() < 10 or np.ptp(x[kept]) < 4.0:
+        w = np.maximum(1.0 - t * t, 0.0) ** 2  # Tukey's biweight
+        # weighted least squares for (gain, offset), closed form: no BLAS or LAPACK, whose
+        # threads cost more than the fit itself on a busy 2-core worker
+        wx = w * x
+        sw, sx, sy = w.sum(), wx.sum(), (w * y).sum()
+        sxx, sxy = (wx * x).sum(), (wx * y).sum()
+        det = sw * sxx - sx * sx
+        if np.count_nonzero(w) < 10 or not det > 1e-9 * sw * sw:
             break  # too few pairs, or one level only: no slope to fit
-        a = np.stack([x * root_w, root_w], axis=1)
-        (gain, offset), *_ = np.linalg.lstsq(a, y * root_w, rcond=None)
+        new_gain = (sw * sxy - sx * sy) / det
+        new_offset = (sy - new_gain * sx) / sw
+        done = abs(new_gain - gain) < 1e-6 and abs(new_offset - offset) < 1e-4
+        gain, offset = float(new_gain), float(new_offset)
+        if done:
+            break
     if not (np.isfinite(gain) and 0.25 <= gain <= 4.0):
         gain, offset = float(np.clip(start, 0.25, 4.0)), 0.0
     return float(gain), float(offset)
@@ -316,19 +328,23 @@ def _seen_depths(
 @numba.njit(cache=True, nogil=True)
 def _block_minima(depth, block):  # pragma: no cover - compiled
     """(ceil(H / block), ceil(W / block)) float32 minimum of each block's surface depths,
-    +inf for a block without surface."""
+    +inf for a block without surface (NaN compares False, so holes never win)."""
     h, w = depth.shape
     n_cols = (w + block - 1) // block
     out = np.full(((h + block - 1) // block, n_cols), np.inf, np.float32)
+    whole = w // block  # blocks with all `block` columns: a fixed inner loop, branch-free
     for r in range(h):
         row = out[r // block]
-        for b in range(n_cols):
+        for b in range(whole):
             m = row[b]
-            for c in range(b * block, min((b + 1) * block, w)):
+            for c in range(b * block, (b + 1) * block):
                 z = depth[r, c]
-                if z > 0.0 and z < m:
-                    m = z
+                m = z if z < m else m
             row[b] = m
+        for c in range(whole * block, w):
+            z = depth[r, c]
+            if z < row[whole]:
+                row[whole] = z
     return out
 
 
