@@ -308,7 +308,12 @@ def hole_depths(depth: np.ndarray, radius_px: int) -> HoleDepths | None:
 def occluder_depth(depth: np.ndarray, radius_px: int) -> np.ndarray:
     """``depth`` (H, W) float32 with its holes filled as the occlusion test reads them
     (:func:`hole_depths`; NaN where nothing is near), ``depth`` itself for radius 0."""
-    holes = hole_depths(depth, radius_px)
+    return filled_depth(depth, hole_depths(depth, radius_px))
+
+
+def filled_depth(depth: np.ndarray, holes: HoleDepths | None) -> np.ndarray:
+    """``depth`` (H, W) with its holes read from ``holes`` (NaN where nothing hides them);
+    ``depth`` itself without ``holes``."""
     if holes is None:
         return depth
     return _fill_holes(np.ascontiguousarray(depth, dtype=np.float32), holes.minima, holes.block)
@@ -465,13 +470,8 @@ def warp_neighbour(
         valid = (map_u >= -0.5) & (map_u < w_q - 0.5) & (map_v >= -0.5) & (map_v < h_q - 0.5)
     map_u[~valid] = -1e4  # finite, far outside: remap leaves the border value there
     map_v[~valid] = -1e4
-    depth_q = neighbour.depth
-    if neighbour.holes is not None:
-        depth_q = _fill_holes(
-            np.ascontiguousarray(depth_q, np.float32), neighbour.holes.minima, neighbour.holes.block
-        )
     seen = cv2.remap(
-        depth_q,
+        filled_depth(neighbour.depth, neighbour.holes),
         map_u,
         map_v,
         cv2.INTER_NEAREST,

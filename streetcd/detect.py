@@ -441,8 +441,10 @@ def _neighbour(
     c = params.correlate
     radius = registration_radius_px(nb_local.intrinsics.width, c)
     lo, hi, lut = envelope_levels(nb_image, radius, c.stretch_percentiles)
-    fill = c.occluder_fill_px and round(scale_px(c.occluder_fill_px, nb_local.intrinsics.width))
-    holes = hole_depths(nb_surf.depth, int(fill))
+    fill = 0
+    if c.occluder_fill_px > 0:
+        fill = round(scale_px(c.occluder_fill_px, nb_local.intrinsics.width))
+    holes = hole_depths(nb_surf.depth, fill)
     if c.pair_gain:
         lut = pair_lut(
             image,

@@ -153,8 +153,8 @@ def chunk_boxes(xyz: np.ndarray) -> np.ndarray:
 
     Most of a street's cloud lies behind or beside any one view, and an MLS cloud comes in
     scan order, so runs of consecutive points are compact: :func:`_in_frustum` skips the
-    runs whose box lies wholly outside the frustum (at 2 MP, 17 → 5 ms per view on a
-    3 M-point street). The boxes cost one pass over the points, paid by the first view;
+    runs whose box lies wholly outside the frustum (17 → 9 ms per view on the 3 M-point
+    street of ``benchmarks/per_view.py``, which a view sees much of; less on a longer one). The boxes cost one pass over the points, paid by the first view;
     clouds are not modified in place anywhere, which this cache relies on.
     """
     key = id(xyz)
