@@ -78,10 +78,11 @@ def scene_for(size: tuple[int, int]) -> Path:
     return ensure_scene(SCENES, seed=0, n_images=N_IMAGES, size=size)
 
 
-def _worker_malloc_env() -> dict[str, str]:
-    from streetcd.pipeline import WORKER_MALLOC_ENV
-
-    return WORKER_MALLOC_ENV
+def _fresh_cloud(scene):
+    """The scene's cloud with a colour array no surface cache has seen, so that its colours
+    are converted within the timed call, as for a freshly cropped cloud."""
+    rgb = scene.cloud.rgb
+    return replace(scene.cloud, rgb=None if rgb is None else rgb.copy())
 
 
 def _setup(size: tuple[int, int]):
@@ -105,9 +106,7 @@ def _setup(size: tuple[int, int]):
 def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     """One detection split into the paper's steps (the same calls as detect_view: the
     metric z-buffer of surface_for_view, the neighbours' uint8 colour envelopes)."""
-    from streetcd.correlate import (
-        stretch_lut,
-    )
+    from streetcd.correlate import stretch_lut
     from streetcd.detect import (
         _neighbour,
         _raw_change_at_cell_scale,
@@ -187,7 +186,7 @@ def detect_in_a_run(scene, params, view, image, neighbours) -> float:
     own surface. The neighbours' surfaces are put in a fresh cache first, untimed."""
     from streetcd.detect import SurfaceCache, _surface, detect_view
 
-    cloud = replace(scene.cloud, rgb=None if scene.cloud.rgb is None else scene.cloud.rgb.copy())
+    cloud = _fresh_cloud(scene)
     cache = SurfaceCache()
     for img, v in neighbours:
         _surface(img, v.local(cloud.origin), cloud, params, cache)
@@ -227,11 +226,7 @@ def run_size(size: tuple[int, int], repeat: int) -> dict:
     runs = [steps_once(scene, params, view, image, neighbours) for _ in range(repeat)]
     totals = []
     for _ in range(repeat):
-        # a colour array detect_view has not seen, so that the cloud's colours are
-        # converted within the timed call, as for a freshly cropped cloud
-        cloud = replace(
-            scene.cloud, rgb=None if scene.cloud.rgb is None else scene.cloud.rgb.copy()
-        )
+        cloud = _fresh_cloud(scene)
         t0 = time.perf_counter()
         detect_view(image, view, neighbours, cloud, params, surfaces=None)
         totals.append(time.perf_counter() - t0)
@@ -262,6 +257,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    from streetcd.pipeline import WORKER_MALLOC_ENV
+
     if args.child:
         w, h = map(int, args.child.split("x"))
         print(json.dumps(run_size((w, h), args.repeat)))
@@ -275,7 +272,7 @@ def main() -> None:
             capture_output=True,
             text=True,
             check=False,
-            env={**os.environ, **_worker_malloc_env()},  # glibc's malloc as a flow worker has it
+            env={**os.environ, **WORKER_MALLOC_ENV},  # glibc's malloc as a flow worker has it
         )
         if proc.returncode != 0:
             sys.exit(f"benchmark at {spec} failed:\n{proc.stderr}")
