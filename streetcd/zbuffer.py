@@ -379,46 +379,6 @@ def block_zbuffer(
 # --- weighted-window z-buffer, eq. 2–3 ---------------------------------------------------
 
 
-_TILE_CELLS = 8  # tiles of 8 × 8 block cells bound the search radius of the adaptive window
-
-
-@numba.njit(cache=True, nogil=True)
-def _search_radius(cells, depth, gh, gw, window, half, reach_scale):  # pragma: no cover - compiled
-    """(gh·gw,) int64 search radius in pixels per block cell for the adaptive window.
-
-    A point i reaches ``r_i = max(half, reach_scale / z_i)`` px. Every centre within r_i of
-    some point i must search at least that far: per tile of ``_TILE_CELLS²`` cells the largest
-    reach is spread to the tiles it can touch. ``reach_scale = 0`` gives ``half`` everywhere.
-    """
-    radius = np.full(gh * gw, half, dtype=np.int64)
-    if reach_scale <= 0.0:
-        return radius
-    th = (gh + _TILE_CELLS - 1) // _TILE_CELLS
-    tw = (gw + _TILE_CELLS - 1) // _TILE_CELLS
-    tile_reach = np.zeros(th * tw, dtype=np.float64)
-    for cell in range(cells.shape[0]):
-        c = cells[cell]
-        if c >= 0:
-            t = ((cell // gw) // _TILE_CELLS) * tw + (cell % gw) // _TILE_CELLS
-            tile_reach[t] = max(tile_reach[t], reach_scale / depth[c])
-    tile_radius = np.zeros(th * tw, dtype=np.float64)
-    tile_px = float(_TILE_CELLS * window)
-    for t in range(th * tw):
-        r = tile_reach[t]
-        if r <= half:
-            continue
-        k = int(r // tile_px) + 1
-        ty, tx = t // tw, t % tw
-        for y in range(max(ty - k, 0), min(ty + k + 1, th)):
-            for x in range(max(tx - k, 0), min(tx + k + 1, tw)):
-                tile_radius[y * tw + x] = max(tile_radius[y * tw + x], r)
-    for cell in range(cells.shape[0]):
-        r = tile_radius[((cell // gw) // _TILE_CELLS) * tw + (cell % gw) // _TILE_CELLS]
-        if r > half:
-            radius[cell] = int(math.ceil(r)) + 1  # +1: pixel of u vs u itself
-    return radius
-
-
 @numba.njit(cache=True, nogil=True)
 def _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale):  # pragma: no cover
     """The occupied block cells, packed in row-major order, with what eq. 2–3 read of each.
@@ -428,13 +388,11 @@ def _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale):  # pragma
     occupied cells of grid row ``y`` at columns ``x0 ≤ x < x1`` are the rows
     ``start[y, x0]:start[y, x1]`` of ``table``.
 
-    Why: :func:`_weighted_erase` scans up to (2·radius / w)² cells per centre, radius up
-    to ~85 px at 12 MP (near points reach far, :func:`_search_radius`), and only about a
-    third of the cells hold a point (synthetic street, 12 MP). Scanning only occupied
-    cells, each read from one packed row instead of through the point index into ``uv``,
-    ``depth`` and the image, makes the scan ~1.7× faster at 12 MP. The values are the ones
-    the scan computed (same expressions) and the order of the visits is the same, so the
-    result does not change.
+    Why: :func:`_weighted_erase` scans up to (2·r_i / w)² cells per point, r_i up to
+    ~85 px at 12 MP (near points reach far), and only about a third of the cells hold a
+    point (synthetic street, 12 MP). Scanning only occupied cells, each read from one
+    packed row instead of through the point index into ``uv``, ``depth`` and the image,
+    made the scan ~1.7× faster at 12 MP.
     """
     start = np.empty((gh, gw + 1), dtype=np.int64)
     m = 0
@@ -465,6 +423,9 @@ def _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale):  # pragma
     return table, ids, start
 
 
+_EMPTY, _ONE, _ARC, _ERASED = 0, 1, 2, 3  # a centre's steep supporters so far
+
+
 @numba.njit(cache=True, nogil=True)
 def _weighted_erase(
     cells,
@@ -480,135 +441,108 @@ def _weighted_erase(
     focal,
     surround,
     reach_scale,
-    radius,
 ):  # pragma: no cover - compiled
     """Erase flags for the BWZB points ``cells`` (see :func:`weighted_zbuffer`).
 
     cells : (gh·gw,) int64 point index per block cell (−1 empty); returns (gh·gw,) bool,
     True where the cell's point is a back-face point by eq. 2–3 with offsets in pixels, or,
     when ``surround``, by the metric reading (offsets px · z_i / ``focal``) with steep
-    supporters that surround the centre (no half-plane through it holds them all).
+    supporters that surround the centre (no open half-plane through it holds them all).
     A neighbour i counts within ``r_i = max(half, reach_scale / z_i)`` px of the centre
     (``reach_scale = 0``: the fixed ``half``), and its Δd of eq. 2 is taken in units of
-    ``r_i / half``; ``radius`` (gh·gw,) int64 is the search radius per cell
-    (:func:`_search_radius`). Only occupied cells are visited (:func:`_packed_cells`).
+    ``r_i / half``. Only occupied cells are visited (:func:`_packed_cells`).
+
+    The pairs are visited from the supporter's side: each point i scans the cells within
+    its own reach r_i for the farther centres it supports. From the centres' side every
+    centre had to scan as far as the largest reach around it, twice as many pairs. Each
+    centre keeps the arc of directions its steep supporters cover (:func:`_widen_arc`),
+    so the order of the visits does not matter.
     """
     height, width = image.shape[0], image.shape[1]
     gw = (width + window - 1) // window
     gh = (height + window - 1) // window
     table, ids, start = _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale)
-    erase = np.zeros(cells.shape[0], dtype=np.bool_)
-    side = (2 * radius.max()) // window + 2
-    steep_u = np.empty(side * side, dtype=np.float64)  # offsets of the steep supporters
-    steep_v = np.empty(side * side, dtype=np.float64)
-    for c in range(ids.shape[0]):
-        cell = ids[c]
-        zc = table[c, 0]
-        uc = table[c, 1]
-        vc = table[c, 2]
-        r0 = table[c, 3]
-        g0 = table[c, 4]
-        b0 = table[c, 5]
-        colc = int(math.floor(uc + 0.5))
-        rowc = int(math.floor(vc + 0.5))
-        search = radius[cell]
-        n = 0
-        sectors = 0  # bit k: a steep supporter lies in the k-th 22.5° sector around u_c
-        hit = False
-        # a neighbour within `search` px of u_c lies in pixel columns colc ± search
-        y0, y1 = max(rowc - search, 0) // window, min((rowc + search) // window + 1, gh)
-        x0, x1 = max(colc - search, 0) // window, min((colc + search) // window + 1, gw)
+    m = ids.shape[0]
+    state = np.zeros(m, dtype=np.uint8)  # _EMPTY, _ONE, _ARC or _ERASED per centre
+    arc = np.empty((m, 4), dtype=np.float64)  # (Δu, Δv) of the arc's two ends
+    max_dc2 = (max_log_w * delta) ** 2 * (1.0 + 1e-9)  # Δc/δ ≥ −ln τ fails eq. 2 alone
+    for i in range(m):
+        u, v, reach = table[i, 1], table[i, 2], table[i, 6]
+        # a centre within `reach` px of u_i has its pixel (floor(u + 0.5)) in these cells
+        y0 = max(int(math.floor(v - reach + 0.5)), 0) // window
+        y1 = min(int(math.floor(v + reach + 0.5)) // window + 1, gh)
+        x0 = max(int(math.floor(u - reach + 0.5)), 0) // window
+        x1 = min(int(math.floor(u + reach + 0.5)) // window + 1, gw)
         for ny in range(y0, y1):
-            for i in range(start[ny, x0], start[ny, x1]):
-                dz = zc - table[i, 0]
+            for c in range(start[ny, x0], start[ny, x1]):
+                dz = table[c, 0] - table[i, 0]
+                du = u - table[c, 1]
+                dv = v - table[c, 2]
                 # eq. 3 looks only at supporting points nearer than the centre (this skips
-                # the centre itself, dz = 0)
-                if dz <= 0.0:
+                # the centre itself, dz = 0), within their reach. One branch for the three
+                # tests: each alone is a coin toss for the branch predictor.
+                if (dz <= 0.0) | (abs(du) > reach) | (abs(dv) > reach) | (state[c] == _ERASED):
                     continue
-                du = table[i, 1] - uc
-                dv = table[i, 2] - vc
-                reach = table[i, 6]
-                if abs(du) > reach or abs(dv) > reach:
+                dr = table[i, 3] - table[c, 3]
+                dg = table[i, 4] - table[c, 4]
+                db = table[i, 5] - table[c, 5]
+                dc2 = dr * dr + dg * dg + db * db
+                # most pairs differ in colour by more than eq. 2 allows at any distance:
+                # reject them before the square roots (max_dc2's margin changes no decision)
+                if dc2 > max_dc2:
                     continue
                 dd = math.sqrt(du * du + dv * dv)
-                dr = table[i, 3] - r0
-                dg = table[i, 4] - g0
-                db = table[i, 5] - b0
-                dc = math.sqrt(dr * dr + dg * dg + db * db)
-                # eq. 2: W = exp(−(Δd/γ + Δc/δ)) > τ  ⇔  Δd/γ + Δc/δ < −ln τ
-                # Δd in units of the neighbour's reach: as close relative to its spacing
+                # eq. 2: W = exp(−(Δd/γ + Δc/δ)) > τ  ⇔  Δd/γ + Δc/δ < −ln τ, with Δd in
+                # units of the supporter's reach: as close relative to its spacing
                 shrink = 1.0 if reach <= half else half / reach
-                if dd * shrink / gamma + dc / delta >= max_log_w:
+                if dd * shrink / gamma + math.sqrt(dc2) / delta >= max_log_w:
                     continue
                 # eq. 3 as written, offsets in pixels: arctan(dz / dd) > θ  ⇔  dz > tan θ · dd
                 if dz > tan_theta * dd:
-                    hit = True
-                    break
+                    state[c] = _ERASED
                 # the metric reading, offsets in metres at the supporter's depth
-                if surround and dz > tan_theta * dd * table[i, 0] / focal:
-                    steep_u[n] = du
-                    steep_v[n] = dv
-                    sectors |= 1 << _sector16(du, dv)
-                    n += 1
-            if hit:
-                break
-        if hit:
-            erase[cell] = True
-        elif n >= 2:
-            # Surrounded: the largest gap between the supporters' directions is ≤ 180°. The
-            # sectors they occupy bound it: k empty sectors in a row between two occupied
-            # ones mean a gap of 22.5° · [k, k + 2]. k ≤ 6 everywhere: surely ≤ 180°; some
-            # k ≥ 9: surely more. Only in between are the angles needed (atan2 and a sort
-            # per centre were ~40 % of the z-buffer's time at 12 MP).
-            empty = _longest_empty_run(sectors)
-            if empty <= 6:
-                erase[cell] = True
-            elif empty <= 8:
-                angles = np.empty(n, dtype=np.float64)
-                for k in range(n):
-                    angles[k] = math.atan2(steep_v[k], steep_u[k])
-                erase[cell] = _max_gap(angles) <= math.pi + 1e-9
+                elif surround and dz > tan_theta * dd * table[i, 0] / focal:
+                    state[c] = _widen_arc(state[c], arc[c], du, dv)
+    erase = np.zeros(cells.shape[0], dtype=np.bool_)
+    for c in range(m):
+        erase[ids[c]] = state[c] == _ERASED
     return erase
 
 
 @numba.njit(cache=True, inline="always")
-def _sector16(du, dv):  # pragma: no cover - compiled
-    """Which 22.5° sector (0–15, counter-clockwise from +u) the direction (du, dv) ≠ 0
-    lies in; a direction on a border (up to rounding) may go to either side."""
-    adu = abs(du)
-    adv = abs(dv)
-    tan_22_5 = 0.41421356237309503  # √2 − 1
-    if adv <= adu:
-        a = 0 if adv <= tan_22_5 * adu else 1
-    else:
-        a = 3 if adu <= tan_22_5 * adv else 2
-    if du >= 0.0:
-        return a if dv >= 0.0 else 15 - a
-    return 7 - a if dv >= 0.0 else 8 + a
+def _widen_arc(state, arc, du, dv):  # pragma: no cover - compiled
+    """Add direction (du, dv) ≠ 0 to the smallest arc holding a centre's steep supporters.
 
-
-@numba.njit(cache=True, inline="always")
-def _longest_empty_run(bits):  # pragma: no cover - compiled
-    """Longest cyclic run of zero bits in the 16-bit mask ``bits`` (16 when it is 0)."""
-    best = 0
-    run = 0
-    for k in range(32):  # twice round: a run may wrap past bit 15
-        if bits & (1 << (k & 15)):
-            run = 0
+    ``arc`` (4,) holds the arc's ends (counter-clockwise from the first to the second),
+    valid in states ``_ONE`` (both ends the one direction so far) and ``_ARC`` (span in
+    (0°, 180°)). Returns the new state: ``_ERASED`` once no arc under 180° holds them all,
+    i.e. the largest gap between their directions is ≤ 180°: the supporters surround the
+    centre. The arc of such a set is unique, so the order of additions does not matter.
+    Signs of cross products decide, with no angles: (a × b) > 0 when b lies less than
+    180° counter-clockwise of a.
+    """
+    if state == _EMPTY:
+        arc[0], arc[1], arc[2], arc[3] = du, dv, du, dv
+        return _ONE
+    after_first = arc[0] * dv - arc[1] * du  # first × d
+    before_second = du * arc[3] - dv * arc[2]  # d × second
+    if state == _ONE:
+        if after_first == 0.0:  # on the line of the one direction: same way, or opposite
+            return _ONE if arc[0] * du + arc[1] * dv > 0.0 else _ERASED
+        if after_first > 0.0:
+            arc[2], arc[3] = du, dv
         else:
-            run += 1
-            best = max(best, run)
-    return min(best, 16)
-
-
-@numba.njit(cache=True)
-def _max_gap(angles):  # pragma: no cover - compiled
-    """Largest angular gap (radians) between directions ``angles`` (sorted in place)."""
-    angles.sort()
-    gap = angles[0] + 2.0 * math.pi - angles[-1]
-    for k in range(1, angles.shape[0]):
-        gap = max(gap, angles[k] - angles[k - 1])
-    return gap
+            arc[0], arc[1] = du, dv
+        return _ARC
+    if after_first >= 0.0 and before_second >= 0.0:  # inside the arc
+        return _ARC
+    if after_first > 0.0:  # beyond the second end, less than 180° from the first
+        arc[2], arc[3] = du, dv
+        return _ARC
+    if before_second > 0.0:  # before the first end, less than 180° from the second
+        arc[0], arc[1] = du, dv
+        return _ARC
+    return _ERASED
 
 
 def weighted_zbuffer(
@@ -653,8 +587,6 @@ def weighted_zbuffer(
     half = int(params.weighted_window_px) // 2
     # the adaptive window needs the focal length to turn metres into pixels
     reach_scale = 0.0 if focal_px is None else float(focal_px) * float(params.point_spacing_m)
-    gw, gh = (w + window - 1) // window, (h + window - 1) // window
-    radius = _search_radius(cells, depth, gh, gw, window, half, reach_scale)
     erase = _weighted_erase(
         cells,
         uv,
@@ -669,6 +601,5 @@ def weighted_zbuffer(
         0.0 if focal_px is None else float(focal_px),
         focal_px is not None,
         reach_scale,
-        radius,
     )
     return _sorted_indices(np.where(erase, -1, cells), depth.shape[0])

@@ -9,9 +9,11 @@ from streetcd.camera import Intrinsics, look_at, project
 from streetcd.errors import InputError
 from streetcd.params import ZBufferParams
 from streetcd.zbuffer import (
+    _ERASED,
     CHUNK_POINTS,
     _box_outside,
     _normalised_bounds,
+    _widen_arc,
     block_zbuffer,
     chunk_boxes,
     project_cloud,
@@ -369,3 +371,34 @@ def test_weighted_zbuffer_equals_brute_force_with_the_adaptive_window(spacing):
     want = _brute_weighted(uv, depth, image, params, 100.0)
     assert 0 < len(got) < len(_brute_block(uv, depth, image.shape[:2], 5))  # some erased
     np.testing.assert_array_equal(got, want)
+
+
+def _surrounded(directions: np.ndarray) -> bool:
+    """The largest gap between the directions' angles is ≤ 180°, by sorting angles."""
+    a = np.sort(np.arctan2(directions[:, 1], directions[:, 0]))
+    return bool(max(a[0] + 2 * np.pi - a[-1], np.diff(a).max(initial=0.0)) <= np.pi + 1e-9)
+
+
+def test_arc_of_steep_supporters_matches_the_largest_angular_gap_in_any_order():
+    # guards _widen_arc, which decides the surround rule with cross-product signs, one
+    # direction at a time: it must agree with sorting the angles, whatever the order
+    rng = np.random.default_rng(5)
+    cases = [np.array([[1.0, 0.0], [-2.0, 0.0]]), np.array([[0.0, 3.0], [0.0, 1.0]])]
+    cases += [np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])]  # exactly 180° gap
+    cases += [np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, -1e-3]])]  # just under 180°
+    for _ in range(300):
+        n = int(rng.integers(1, 9))
+        spread = rng.uniform(1.0, 2 * np.pi)  # narrow and wide fans
+        angles = rng.uniform(0, spread, n) + rng.uniform(0, 2 * np.pi)
+        cases.append(np.column_stack([np.cos(angles), np.sin(angles)]) * rng.uniform(1, 9, (n, 1)))
+    surrounded = 0
+    for directions in cases:
+        want = len(directions) >= 2 and _surrounded(directions)
+        surrounded += want
+        for order in (directions, directions[::-1], rng.permutation(directions)):
+            state, arc = 0, np.zeros(4)
+            for du, dv in order:
+                if state != _ERASED:
+                    state = _widen_arc(state, arc, du, dv)
+            assert (state == _ERASED) == want, directions
+    assert 50 < surrounded < len(cases) - 50  # both outcomes are exercised
