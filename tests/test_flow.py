@@ -187,10 +187,14 @@ def test_infra_files_parse_and_agree():
     (schedule,) = nightly["schedules"]
     assert len(schedule["cron"].split()) == 5
 
-    from streetcd.pipeline import WORKER_MALLOC_ENV
+    import dask
+
+    from streetcd.pipeline import QUIET_DASK, WORKER_MALLOC_ENV
 
     dask_yaml = yaml.safe_load((ROOT / "infra" / "dask.yaml").read_text())
     assert dask_yaml["distributed"]["nanny"]["pre-spawn-environ"] == WORKER_MALLOC_ENV
+    for key, value in QUIET_DASK.items():
+        assert dask.config.get(key, config=dask_yaml) == value, key
     assert "COPY infra/dask.yaml /etc/dask/" in (ROOT / "infra" / "Dockerfile").read_text()
 
     values = yaml.safe_load((ROOT / "infra" / "helm" / "dask-values.yaml").read_text())
