@@ -149,9 +149,9 @@ class SurfaceCache:
 
     A surface depends on the cloud, the view's camera and pose, its image (the colours of
     eq. 2) and the z-buffer, surface and range parameters. The key holds the view's name,
-    pose, intrinsics, a CRC-32 of the image bytes (:func:`image_checksum`, once per read-only image), those
-    parameters and the cloud's identity: ``id`` of its xyz and classification arrays, their
-    length and the origin. A hit also checks, through weak references, that those very
+    pose, intrinsics, a CRC-32 of the image bytes (:func:`image_checksum`: once per
+    read-only image), those parameters and the cloud's identity: ``id`` of its xyz and
+    classification arrays, their length and the origin. A hit also checks, through weak references, that those very
     arrays are still alive (an ``id`` can be reused after one is freed). Not detected:
     a cloud array changed *in place* after a surface was built from it; call
     :meth:`clear` after doing that. A cloud cropped anew per view (as
