@@ -299,14 +299,16 @@ def _crop_store(
     tiles = list(candidates.values())
     boxes = np.array([t.bounds[0:2] + t.bounds[3:5] for t in tiles])
     hits = _hits(views, store.origin, boxes, max_range_m, buffer_m)
+    seen = [k for k in range(len(tiles)) if hits[:, k].any()]
+    # read together: tiles that share a compressed chunk decompress it once
+    clouds = store.read_tiles([tiles[k].id for k in seen])
     parts = []
-    for k, tile in enumerate(tiles):
+    for k in seen:
         seeing = [v for v, hit in zip(views, hits[:, k], strict=True) if hit]
-        if seeing:
-            cloud = store.read_tile(tile.id)
-            parts.append(
-                cloud.subset(_union_mask(cloud.xyz, seeing, store.origin, max_range_m, buffer_m))
-            )
+        cloud = clouds[tiles[k].id]
+        parts.append(
+            cloud.subset(_union_mask(cloud.xyz, seeing, store.origin, max_range_m, buffer_m))
+        )
     return _concat(parts, store.origin, store.crs)
 
 

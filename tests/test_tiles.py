@@ -18,9 +18,10 @@ from click.testing import CliRunner
 from streetcd import tiles
 from streetcd.cli.ingest import ingest as ingest_cmd
 from streetcd.cli.ingest import tiles as tiles_cmd
-from streetcd.errors import InputError, OptionalDependencyError
+from streetcd.errors import InputError, MissingInputError, OptionalDependencyError
 from streetcd.io.las import PointCloud, read_las, write_las
 from streetcd.tiles import (
+    TILE_CACHE,
     StoreLockedError,
     TileCache,
     TileStore,
@@ -130,6 +131,28 @@ def test_every_point_lands_in_exactly_one_tile_whatever_the_file_order(archive, 
     assert a.tiles.keys() == b.tiles.keys()
     for tid in a.tiles:
         assert sorted(a.read_tile(tid).gps_time) == sorted(b.read_tile(tid).gps_time)
+
+
+def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path):
+    # guards read_tiles, which decompresses each chunk once for all the tiles it serves and
+    # cuts their runs out of it (1000-point chunks: runs straddle chunk borders)
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000)
+    store = TileStore.open(tmp_path / "s.zarr")
+    tids = sorted(store.tiles)
+    together = store.read_tiles(tids[::-1], cache=False)
+    assert list(together) == tids[::-1]
+    for tid in tids:
+        one = store.read_tile(tid, cache=False)
+        for name in ("xyz", "classification", "intensity", "rgb", "gps_time"):
+            np.testing.assert_array_equal(getattr(together[tid], name), getattr(one, name))
+    TILE_CACHE.clear()
+    cached = store.read_tiles(tids[:3])
+    again = store.read_tiles(tids[:5])
+    assert all(again[t] is cached[t] for t in tids[:3])  # served from the cache
+    assert not again[tids[4]].xyz.flags.writeable  # shared: read-only
+    with pytest.raises(MissingInputError, match="no tile"):
+        store.read_tiles([tids[0], "999_999"])
 
 
 def test_tile_index_holds_bounds_counts_classes_and_sources(archive, tmp_path):
