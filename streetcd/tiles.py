@@ -82,7 +82,13 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from streetcd.errors import CRSMismatchError, InputError, MissingInputError, StreetcdError
+from streetcd.errors import (
+    CorruptFileError,
+    CRSMismatchError,
+    InputError,
+    MissingInputError,
+    StreetcdError,
+)
 from streetcd.io.las import LasInfo, PointCloud, iter_las_chunks, las_info
 from streetcd.locks import exclusive
 
@@ -584,10 +590,24 @@ class TileStore:
         for source, start, count in runs:
             for name, a in self._source_arrays(source).items():
                 rows = a.chunks[0]
-                for c in range(start // rows, (start + count - 1) // rows + 1):
+                for c in _chunk_numbers(start, count, rows):
                     if (source, name, c) not in out:
-                        out[source, name, c] = a[c * rows : (c + 1) * rows]
+                        out[source, name, c] = self._read_chunk(source, name, a, c)
         return out
+
+    def _read_chunk(self, source: int, name: str, a: Any, c: int) -> np.ndarray:
+        """Chunk ``c`` of field ``name`` of a source; a chunk that cannot be read (truncated,
+        corrupt) raises CorruptFileError naming the store, the source file and the field."""
+        rows = a.chunks[0]
+        try:
+            return np.asarray(a[c * rows : (c + 1) * rows])
+        except Exception as exc:
+            path, key = self.sources[source]
+            raise CorruptFileError(
+                f"{self.path}: points of {path} (points/{key}), field {name!r}, chunk {c}: "
+                f"cannot be read ({type(exc).__name__}: {exc}); `touch` the file and ingest "
+                "again to rewrite its points"
+            ) from exc
 
     def _assemble(
         self, info: TileInfo, runs: np.ndarray, chunks: dict[tuple[int, str, int], np.ndarray]
@@ -599,14 +619,16 @@ class TileStore:
             fields = {}
             for name, a in self._source_arrays(source).items():
                 rows = a.chunks[0]
-                if count == 0:
-                    fields[name] = np.empty((0, *a.shape[1:]), a.dtype)
-                    continue
                 pieces = [
                     chunks[source, name, c][max(start - c * rows, 0) : start + count - c * rows]
-                    for c in range(start // rows, (start + count - 1) // rows + 1)
+                    for c in _chunk_numbers(start, count, rows)
                 ]
-                fields[name] = pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+                if len(pieces) == 1:  # a view: the concatenation below copies it once
+                    fields[name] = pieces[0]
+                else:
+                    fields[name] = (
+                        np.concatenate(pieces) if pieces else np.empty((0, *a.shape[1:]), a.dtype)
+                    )
             parts.append(fields)
         names = set.intersection(*(set(p) for p in parts))  # fields every source has
         cat = {n: np.concatenate([p[n] for p in parts]) for n in names}
@@ -636,6 +658,11 @@ class TileStore:
             "tiles": [t.to_json() for t in self.tiles.values()],
             "files": self.files,
         }
+
+
+def _chunk_numbers(start: int, count: int, rows: int) -> range:
+    """The chunks of ``rows`` rows that rows ``start … start + count − 1`` lie in."""
+    return range(start // rows, (start + count - 1) // rows + 1) if count > 0 else range(0)
 
 
 def read_index(path: Path) -> dict[str, Any] | None:

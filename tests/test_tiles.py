@@ -18,7 +18,12 @@ from click.testing import CliRunner
 from streetcd import tiles
 from streetcd.cli.ingest import ingest as ingest_cmd
 from streetcd.cli.ingest import tiles as tiles_cmd
-from streetcd.errors import InputError, MissingInputError, OptionalDependencyError
+from streetcd.errors import (
+    CorruptFileError,
+    InputError,
+    MissingInputError,
+    OptionalDependencyError,
+)
 from streetcd.io.las import PointCloud, read_las, write_las
 from streetcd.tiles import (
     TILE_CACHE,
@@ -153,6 +158,19 @@ def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path):
     assert not again[tids[4]].xyz.flags.writeable  # shared: read-only
     with pytest.raises(MissingInputError, match="no tile"):
         store.read_tiles([tids[0], "999_999"])
+
+
+def test_a_corrupt_chunk_in_the_store_names_the_file_and_field(archive, tmp_path):
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000)
+    store = TileStore.open(tmp_path / "s.zarr")
+    path, key = store.sources[0]
+    chunk = next(p for p in (tmp_path / "s.zarr" / "points" / key / "rgb").rglob("c/*/*"))
+    # an overwritten chunk. (A truncated one is not always noticed: blosc trusts the sizes
+    # in its header, zarr-developers/numcodecs#228; a checksum codec would catch it.)
+    chunk.write_bytes(b"not a blosc frame" * 8)
+    with pytest.raises(CorruptFileError, match=rf"{Path(path).name}.*field 'rgb', chunk \d+"):
+        store.read_tiles(sorted(store.tiles), cache=False)
 
 
 def test_tile_index_holds_bounds_counts_classes_and_sources(archive, tmp_path):
