@@ -138,12 +138,16 @@ def test_every_point_lands_in_exactly_one_tile_whatever_the_file_order(archive, 
         assert sorted(a.read_tile(tid).gps_time) == sorted(b.read_tile(tid).gps_time)
 
 
-def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path):
+def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path, monkeypatch):
     # guards read_tiles, which decompresses each chunk once for all the tiles it serves and
-    # cuts their runs out of it (1000-point chunks: runs straddle chunk borders)
-    d, _ = archive
-    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000)
+    # cuts their runs out of it; 500-row chunks, so that runs straddle chunk borders
+    d, truth = archive
+    monkeypatch.setattr(tiles, "CHUNK_POINTS", 500)
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000, workers=1)
     store = TileStore.open(tmp_path / "s.zarr")
+    rows = store._source_arrays(0)["xyz"].chunks[0]
+    runs = store._segments[:, 3:5].tolist()
+    assert rows == 500 and any(s // rows != (s + n - 1) // rows for s, n in runs if n)
     tids = sorted(store.tiles)
     together = store.read_tiles(tids[::-1], cache=False)
     assert list(together) == tids[::-1]
@@ -151,6 +155,8 @@ def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path):
         one = store.read_tile(tid, cache=False)
         for name in ("xyz", "classification", "intensity", "rgb", "gps_time"):
             np.testing.assert_array_equal(getattr(together[tid], name), getattr(one, name))
+    ids = np.concatenate([together[t].gps_time for t in tids])
+    np.testing.assert_array_equal(np.sort(ids), np.sort(truth["ids"]))  # none lost or twice
     TILE_CACHE.clear()
     cached = store.read_tiles(tids[:3])
     again = store.read_tiles(tids[:5])
