@@ -59,6 +59,7 @@ from streetcd.errors import (
 )
 from streetcd.graphcut import cut_changes, nearest_index, node_energy
 from streetcd.io.las import PointCloud
+from streetcd.memo import ArrayMemo
 from streetcd.params import DetectParams, scale_px
 from streetcd.refine import refined_mask
 from streetcd.views import PoseSet, View
@@ -233,7 +234,7 @@ class SurfaceCache:
         return len(self._entries)
 
 
-_CHECKSUMS: dict[int, tuple[weakref.ref, int]] = {}  # id(image) → (the image, its CRC-32)
+_CHECKSUMS = ArrayMemo()  # a read-only image → its CRC-32
 
 
 def image_checksum(image: np.ndarray) -> int:
@@ -244,16 +245,13 @@ def image_checksum(image: np.ndarray) -> int:
     shared image once, not four times (the flow's image cache hands out such arrays,
     :func:`streetcd.pipeline.read_rgb`).
     """
-    frozen = not image.flags.writeable and image.flags.owndata
-    key = id(image)
-    if frozen:
-        hit = _CHECKSUMS.get(key)
-        if hit is not None and hit[0]() is image:
-            return hit[1]
-    crc = zlib.crc32(np.ascontiguousarray(image).data.cast("B"))
-    if frozen:  # the entry goes with the array (its id may be reused after that)
-        _CHECKSUMS[key] = (weakref.ref(image, lambda _: _CHECKSUMS.pop(key, None)), crc)
-    return crc
+    if not image.flags.writeable and image.flags.owndata:
+        return int(_CHECKSUMS.get(image, _crc32))
+    return _crc32(image)
+
+
+def _crc32(image: np.ndarray) -> int:
+    return zlib.crc32(np.ascontiguousarray(image).data.cast("B"))
 
 
 def _surface_bytes(surf: Any) -> int:

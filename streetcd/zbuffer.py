@@ -58,8 +58,6 @@ Choices the paper leaves open, made here:
 from __future__ import annotations
 
 import math
-import threading
-import weakref
 from dataclasses import dataclass
 
 import numba
@@ -67,6 +65,7 @@ import numpy as np
 
 from streetcd.camera import Intrinsics, Pose, distort, in_image, undistort
 from streetcd.errors import InputError
+from streetcd.memo import ArrayMemo
 from streetcd.params import ZBufferParams
 
 
@@ -143,8 +142,7 @@ def project_cloud(
 
 
 CHUNK_POINTS = 4096  # consecutive points per bounding box (scan order keeps them together)
-_BOXES: dict[int, tuple[weakref.ref, np.ndarray]] = {}  # id(xyz) → (the array, its boxes)
-_BOXES_LOCK = threading.Lock()
+_BOXES = ArrayMemo()  # a cloud's xyz → its boxes
 
 
 def chunk_boxes(xyz: np.ndarray) -> np.ndarray:
@@ -154,22 +152,11 @@ def chunk_boxes(xyz: np.ndarray) -> np.ndarray:
     Most of a street's cloud lies behind or beside any one view, and an MLS cloud comes in
     scan order, so runs of consecutive points are compact: :func:`_in_frustum` skips the
     runs whose box lies wholly outside the frustum (17 → 9 ms per view on the 3 M-point
-    street of ``benchmarks/per_view.py``, which a view sees much of; less on a longer one). The boxes cost one pass over the points, paid by the first view;
-    clouds are not modified in place anywhere, which this cache relies on.
+    street of ``benchmarks/per_view.py``, which a view sees much of; less on a longer one).
+    The boxes cost one pass over the points, paid by the first view; clouds are not
+    modified in place anywhere, which this cache relies on (:class:`streetcd.memo.ArrayMemo`).
     """
-    key = id(xyz)
-    with _BOXES_LOCK:
-        hit = _BOXES.get(key)
-        if hit is not None and hit[0]() is xyz:
-            return hit[1]
-    boxes = _chunk_boxes(xyz, CHUNK_POINTS)
-
-    def forget(_: object) -> None:  # the array is gone: its id may be reused
-        _BOXES.pop(key, None)
-
-    with _BOXES_LOCK:
-        _BOXES[key] = (weakref.ref(xyz, forget), boxes)
-    return boxes
+    return _BOXES.get(xyz, lambda a: _chunk_boxes(a, CHUNK_POINTS))
 
 
 @numba.njit(cache=True, nogil=True)

@@ -526,15 +526,15 @@ def test_image_checksum_is_kept_only_for_images_nothing_can_change():
 
     image = np.arange(3 * 4 * 5, dtype=np.uint8).reshape(3, 4, 5) + np.uint8(1)
     assert image_checksum(image) == zlib.crc32(image.tobytes())
-    assert id(image) not in _CHECKSUMS  # writeable: recomputed every time
+    assert id(image) not in _CHECKSUMS.items  # writeable: recomputed every time
     image[0, 0, 0] = 200
     assert image_checksum(image) == zlib.crc32(image.tobytes())
     image.flags.writeable = False
     crc = image_checksum(image)
-    assert crc == zlib.crc32(image.tobytes()) and _CHECKSUMS[id(image)][1] == crc
+    assert crc == zlib.crc32(image.tobytes()) and _CHECKSUMS.items[id(image)][1] == crc
     view = image[:, ::2]  # read-only but not owning its data: not kept
     assert image_checksum(view) == zlib.crc32(np.ascontiguousarray(view).tobytes())
-    assert id(view) not in _CHECKSUMS
+    assert id(view) not in _CHECKSUMS.items
     key = id(image)
     del image, view
-    assert key not in _CHECKSUMS  # forgotten with the array
+    assert key not in _CHECKSUMS.items  # forgotten with the array
