@@ -658,10 +658,10 @@ def read_image(path: str | Path) -> np.ndarray:
     data = np.fromfile(path, dtype=np.uint8)
     if path.suffix.lower() in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-64:].tobytes():
         raise CorruptFileError(f"{path}: truncated JPEG (no end-of-image marker)")
-    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if bgr is None:
+    rgb = cv2.imdecode(data, cv2.IMREAD_COLOR_RGB) if data.size else None
+    if rgb is None:
         raise CorruptFileError(f"{path}: cannot be decoded as an image")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return rgb
 
 
 def load_clouds(paths: Sequence[str | Path]) -> PointCloud:

@@ -722,16 +722,16 @@ def read_rgb(path: Path, view: View) -> np.ndarray:
     import cv2
 
     data = np.fromfile(path, dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    if image is None:
+    # decoded straight to RGB: the same pixels as BGR then cvtColor, without the copy
+    rgb = cv2.imdecode(data, cv2.IMREAD_COLOR_RGB) if data.size else None
+    if rgb is None:
         raise CorruptFileError(f"{path}: cannot be decoded as an image ({data.size} bytes)")
-    h, w = image.shape[:2]
+    h, w = rgb.shape[:2]
     i = view.intrinsics
     if (w, h) != (i.width, i.height):
         raise InputError(
             f"{path}: image is {w}x{h} but the pose of {view.name!r} says {i.width}x{i.height}"
         )
-    rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     rgb.flags.writeable = False
     return rgb
 
@@ -1006,9 +1006,13 @@ def _tint_red(image: np.ndarray, mask: np.ndarray, channel: int = 0) -> np.ndarr
     table and a masked copy in OpenCV, which lets the detector have the GIL meanwhile."""
     import cv2
 
-    lut = _half_red_lut(channel)
     pick = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
-    cv2.copyTo(cv2.LUT(image, lut), pick, image)
+    # Only the box around the mask: changes are a few per cent of a view, and the lookup
+    # over the whole image was half of the overlay's cost.
+    x, y, w, h = cv2.boundingRect(pick)
+    if w and h:
+        box = image[y : y + h, x : x + w]
+        cv2.copyTo(cv2.LUT(box, _half_red_lut(channel)), pick[y : y + h, x : x + w], box)
     return image
 
 

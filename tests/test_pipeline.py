@@ -115,6 +115,11 @@ def test_the_overlay_tint_is_half_way_to_red_exactly():
     pipeline._tint_red(bgr, mask, channel=2)
     assert np.array_equal(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), want)
     assert np.array_equal(pipeline._tint_red(image.copy(), np.zeros_like(mask)), image)
+    inner = np.zeros_like(mask)  # a mask away from the borders: only its box is tinted
+    inner[5:12, 10:31] = mask[5:12, 10:31]
+    want = image.copy()
+    want[inner] = (0.5 * want[inner] + 0.5 * np.array([255, 0, 0])).astype(np.uint8)
+    assert np.array_equal(pipeline._tint_red(image.copy(), inner), want)
 
 
 def test_each_batch_is_told_the_next_one_on_its_worker_and_runs_in_order(
