@@ -655,12 +655,20 @@ def read_image(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise MissingInputError(f"image not found: {path}")
-    data = np.fromfile(path, dtype=np.uint8)
+    return decode_rgb(path, np.fromfile(path, dtype=np.uint8))
+
+
+def decode_rgb(path: Path, data: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 RGB image from the bytes ``data`` of the file ``path``;
+    CorruptFileError naming the file if they cannot be decoded or a JPEG is truncated
+    (libjpeg would return the top half and a grey rest; OpenCV 5 refuses it, earlier
+    releases did not)."""
     if path.suffix.lower() in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-64:].tobytes():
         raise CorruptFileError(f"{path}: truncated JPEG (no end-of-image marker)")
+    # decoded straight to RGB: the same pixels as BGR then cvtColor, without the copy
     rgb = cv2.imdecode(data, cv2.IMREAD_COLOR_RGB) if data.size else None
     if rgb is None:
-        raise CorruptFileError(f"{path}: cannot be decoded as an image")
+        raise CorruptFileError(f"{path}: cannot be decoded as an image ({data.size} bytes)")
     return rgb
 
 

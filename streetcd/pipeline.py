@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from streetcd.errors import CorruptFileError, CRSMismatchError, InputError, MissingInputError
+from streetcd.errors import CRSMismatchError, InputError, MissingInputError
 from streetcd.index import ChangeIndex, RegionRecord, ViewRecord, run_lock
 from streetcd.io.las import PointCloud
 from streetcd.params import DetectParams, params_to_dict
@@ -719,13 +719,9 @@ def read_rgb(path: Path, view: View) -> np.ndarray:
     """(H, W, 3) uint8 RGB image of ``view``, read-only (the image cache shares it among the
     views of a batch, and the surface cache keys it by a checksum computed once,
     :func:`streetcd.detect.image_checksum`); errors name the file."""
-    import cv2
+    from streetcd.detect import decode_rgb
 
-    data = np.fromfile(path, dtype=np.uint8)
-    # decoded straight to RGB: the same pixels as BGR then cvtColor, without the copy
-    rgb = cv2.imdecode(data, cv2.IMREAD_COLOR_RGB) if data.size else None
-    if rgb is None:
-        raise CorruptFileError(f"{path}: cannot be decoded as an image ({data.size} bytes)")
+    rgb = decode_rgb(path, np.fromfile(path, dtype=np.uint8))
     h, w = rgb.shape[:2]
     i = view.intrinsics
     if (w, h) != (i.width, i.height):

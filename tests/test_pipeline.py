@@ -101,6 +101,27 @@ def test_a_view_is_flagged_by_its_largest_region_not_by_scattered_specks():
     assert not pipeline.is_flagged(5000 / n, [5000], n, strict)
 
 
+def test_read_rgb_refuses_a_cut_jpeg_and_a_wrong_size_naming_the_file(tmp_path):
+    from streetcd.camera import Intrinsics, Pose
+    from streetcd.errors import CorruptFileError, InputError
+    from streetcd.views import View
+
+    rgb = np.random.default_rng(3).integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    view = View("v.jpg", Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), Pose(np.eye(3), np.zeros(3)))
+    good, cut = tmp_path / "v.jpg", tmp_path / "cut.jpg"
+    good.write_bytes(buf.tobytes())
+    cut.write_bytes(buf.tobytes()[: len(buf) * 2 // 3])  # scan data left, no end marker
+    image = pipeline.read_rgb(good, view)
+    want = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(image, want) and not image.flags.writeable
+    with pytest.raises(CorruptFileError, match=f"{cut}: truncated JPEG"):
+        pipeline.read_rgb(cut, view)
+    small = View("v.jpg", Intrinsics(40, 30, 35.0, 35.0, 20.0, 15.0), view.pose)
+    with pytest.raises(InputError, match="image is 80x60 but the pose of 'v.jpg' says 40x30"):
+        pipeline.read_rgb(good, small)
+
+
 def test_the_overlay_tint_is_half_way_to_red_exactly():
     rng = np.random.default_rng(7)
     image = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
