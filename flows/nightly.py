@@ -6,11 +6,12 @@ Dask directly (one Dask task per batch of consecutive views), so a city's thousa
 images do not become thousands of Prefect task runs.
 
 Dask: a LocalCluster of ``workers`` processes, or the cluster at ``scheduler`` /
-``$STREETCD_SCHEDULER``, started (or connected to) while the run is planned. Every batch
-is submitted as soon as the plan and the cluster are ready, before the per-segment Prefect
-task runs that publish them exist. Workers crop their segment's cloud from the tile store
-once (the next segment's while they work on this one) and read their own images; only
-small records travel back.
+``$STREETCD_SCHEDULER``, started (or connected to) while the run is planned. The workers'
+first batches are submitted as soon as the plan and the cluster are ready, before the
+per-segment Prefect task runs that publish them exist; the client hands out the rest as
+batches end (:class:`streetcd.dispatch.Dispatcher`). Workers crop their segment's cloud
+from the tile store once (the next segment's while they work on this one) and read their
+own images; only small records travel back.
 
 One run at a time per index: the flow holds the index's run lock (``<index>.lock``) from
 start to end, and a second run on the same index fails at once, naming the holder.
@@ -22,6 +23,7 @@ with ``infra/prefect.yaml``.
 from __future__ import annotations
 
 import time
+from contextlib import ExitStack, closing
 from typing import Any
 
 from prefect import flow, get_run_logger, task
@@ -30,6 +32,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from prefect.utilities.annotations import quote
 
 from streetcd import pipeline
+from streetcd.dispatch import Dispatcher
 from streetcd.params import load_params
 
 # Tasks neither cache nor persist results: the change index is the flow's result and makes
@@ -97,12 +100,11 @@ def plan(
     task_run_name="segment {segment_id}",
 )
 def detect_segment(
-    client: Any, plan: pipeline.Plan, segment_id: str, futures: dict[Any, pipeline.Batch]
+    plan: pipeline.Plan, segment_id: str, dispatcher: Dispatcher
 ) -> pipeline.RunSummary:
-    """Publish one segment's batches, submitted to Dask by the flow (``futures``, from
-    :func:`streetcd.pipeline.submit_segment`), as they complete."""
+    """Publish one segment's batches, handed to Dask by ``dispatcher``, as they end."""
     t0 = time.perf_counter()
-    s = pipeline.publish_segment(client, plan, futures)
+    s = pipeline.publish_segment(plan, dispatcher.finished(segment_id))
     get_run_logger().info(
         "segment %s: %d views done, %d flagged, %d failed in %.1f s",
         segment_id,
@@ -153,6 +155,7 @@ def nightly(
     with (
         pipeline.run_lock(index, "the streetcd-nightly flow"),
         pipeline.dask_client_soon(scheduler, workers) as starting,
+        ExitStack() as stack,
     ):
         if archive:
             # files are read on the cluster (the store is on storage its workers share)
@@ -164,29 +167,19 @@ def nightly(
         if segments:
             client = starting.result()
             summary.wait_s = time.perf_counter() - t0 - summary.plan_s
-            hints = pipeline.plan_workers(client, the_plan)
-            then = pipeline.next_segments(the_plan, hints)
-            # Every batch goes to Dask now, before Prefect creates the segment task runs
-            # that publish them: the workers start at once, and each batch is told which
-            # one follows it on its worker, so that the worker prepares it meanwhile.
-            submitted = {
-                s: pipeline.submit_segment(client, the_plan, s, hints[s], then[s]) for s in segments
-            }
+            # Each worker's first batches go to Dask now, before Prefect creates the segment
+            # task runs that publish them: the workers start at once.
+            dispatcher = stack.enter_context(closing(Dispatcher(client, the_plan).start()))
             logger.info(
                 "dask: %s with %d worker(s), dashboard %s",
                 client.scheduler.address,
                 len(client.scheduler_info(n_workers=-1)["workers"]),
                 client.dashboard_link,
             )
-            # quote(): hand the client, the plan and the Dask futures over as they are;
-            # Prefect would otherwise walk every dataclass in them looking for futures.
+            # quote(): hand the plan and the dispatcher over as they are; Prefect would
+            # otherwise walk every dataclass in them looking for futures.
             futures = [
-                detect_segment.submit(
-                    quote(client),
-                    quote(the_plan),
-                    s,  # type: ignore[call-overload]
-                    quote(submitted[s]),
-                )
+                detect_segment.submit(quote(the_plan), s, quote(dispatcher))  # type: ignore[call-overload]
                 for s in segments
             ]
             for f in futures:

@@ -9,10 +9,11 @@ The Prefect flow (``flows/nightly.py``) and the CLI call these; nothing here imp
 * :func:`detect_batch` runs on a Dask worker: it crops each view's cloud from the tile store
   itself, reads the images itself, runs the detector and writes masks and overlays
   atomically. Only the small :class:`~streetcd.index.ViewRecord` comes back.
-* :func:`submit_segment` submits one segment's batches (pinned, loosely, to one worker so
-  its tile cache pays, each told which batch follows it on that worker so the worker
-  prepares it meanwhile); :func:`publish_segment` publishes each batch in one index
-  transaction as it completes; :func:`detect_segment` does both.
+* :class:`streetcd.dispatch.Dispatcher` hands the batches to the workers: each worker a
+  share of whole segments (so its tile cache and segment cloud pay), a batch or two at a
+  time, each told which batch follows it on that worker so the worker prepares it
+  meanwhile; :func:`publish_segment` publishes each batch in one index transaction as it
+  ends.
 * :func:`run_pipeline` chains them for one run without Prefect (tests, benchmarks).
 
 Views that fail (corrupt image, no points in view, bad pose) are recorded with the error
@@ -32,7 +33,7 @@ import time
 import traceback
 import uuid
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache, partial
@@ -130,6 +131,8 @@ class Batch:
         later batches, and the detector's surface cache, from that one cloud.
     store_generation : the tile store's generation at planning, so a long-lived worker
         never reads a store it opened before the last ingest.
+    part : set on the single-view batches a batch was cut into (the end of a worker's
+        queue, :func:`streetcd.dispatch.split_tail`): the view's position in the batch.
     """
 
     segment_id: str
@@ -141,10 +144,12 @@ class Batch:
     params_hash: str
     crop_views: tuple[View, ...] = ()
     store_generation: int | None = None
+    part: int | None = None
 
     @property
     def key(self) -> str:
-        return f"detect-{self.segment_id}-{self.number}"
+        tail = "" if self.part is None else f".{self.part}"
+        return f"detect-{self.segment_id}-{self.number}{tail}"
 
 
 @dataclass(frozen=True)
@@ -173,22 +178,15 @@ class Plan:
         """Ids of the segments with views to do, in plan (trajectory) order."""
         return tuple(self._by_segment)
 
-    def rank(self, segment_id: str) -> int:
-        """Position of ``segment_id`` in :attr:`segments_todo`."""
-        return self._rank[segment_id]
-
     def order(self, batch: Batch) -> int:
-        """Position of ``batch`` in :attr:`batches`: segments in plan order, each one's
-        batches in trajectory order (the order a worker should run them in)."""
-        return self._order[batch.key]
+        """Position of ``batch`` (or of the batch it is a part of) in :attr:`batches`:
+        segments in plan order, each one's batches in trajectory order (the order a worker
+        should run them in)."""
+        return self._order[batch.segment_id, batch.number]
 
     @cached_property
-    def _order(self) -> dict[str, int]:
-        return {b.key: k for k, b in enumerate(self.batches)}
-
-    @cached_property
-    def _rank(self) -> dict[str, int]:
-        return {s: k for k, s in enumerate(self._by_segment)}
+    def _order(self) -> dict[tuple[str, int], int]:
+        return {(b.segment_id, b.number): k for k, b in enumerate(self.batches)}
 
     @cached_property
     def _by_segment(self) -> dict[str, tuple[Batch, ...]]:
@@ -732,7 +730,9 @@ def read_rgb(path: Path, view: View) -> np.ndarray:
     return rgb
 
 
-def detect_batch(batch: Batch, ahead: Batch | None = None) -> list[ViewRecord]:
+def detect_batch(
+    batch: Batch, ahead: Batch | None = None, next_segment: Batch | None = None
+) -> list[ViewRecord]:
     """Run the detector on every view of ``batch``; one record per view, failures included.
 
     Runs on a Dask worker: opens the tile store (cached per process), crops the segment's
@@ -741,9 +741,11 @@ def detect_batch(batch: Batch, ahead: Batch | None = None) -> list[ViewRecord]:
     done for its views: it is shared among them in their ``total_s`` and ``cpu_s``.
 
     ahead : the batch this worker is likely to run next (a hint; None when unknown). Its
-    segment's cloud is cropped in the background while this batch runs, and its first
-    view's images are decoded during this batch's last view, so that the next batch starts
-    detecting at once. Results do not depend on it.
+    first view's images are decoded during this batch's last view, and its segment's
+    cloud cropped in the background if it is another segment, so that the next batch starts
+    detecting at once. next_segment : the first batch of the worker's next segment (a
+    hint): its cloud is cropped in the background while this batch runs. Results do not
+    depend on either.
     """
     store = _open_store(batch.store, batch.store_generation)
     tasks = batch.tasks
@@ -752,8 +754,9 @@ def detect_batch(batch: Batch, ahead: Batch | None = None) -> list[ViewRecord]:
     cloud, _ = segment_cloud(batch, store)
     extra_s = time.perf_counter() - t0
     extra_cpu = time.process_time() - c0
-    if ahead is not None:
-        crop_ahead(ahead)
+    for hint in (ahead, next_segment):
+        if hint is not None:
+            crop_ahead(hint)  # nothing to do when its cloud is made or being made
     done = []
     for k, task in enumerate(tasks):
         if k + 1 < len(tasks):
@@ -1125,9 +1128,10 @@ def dask_client_soon(
 def segment_workers(
     client: Any, segment_ids: Sequence[str], sizes: Sequence[int] | None = None
 ) -> dict[str, str | None]:
-    """Assign segments to the workers alive now (a loose hint, see :func:`detect_segment`),
-    largest first to the least loaded worker, so that workers get about the same number
-    of views (``sizes``, default one per segment) and finish together."""
+    """Assign segments to the workers alive now (each worker's share of the run, see
+    :class:`streetcd.dispatch.Dispatcher`), largest first to the least loaded worker, so
+    that workers get about the same number of views (``sizes``, default one per segment)
+    and finish together."""
     workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
     if not workers:
         return {s: None for s in segment_ids}
@@ -1150,105 +1154,32 @@ def plan_workers(client: Any, plan: Plan) -> dict[str, str | None]:
     return segment_workers(client, segs, [sizes[s] for s in segs])
 
 
-def next_segments(plan: Plan, hints: dict[str, str | None]) -> dict[str, str | None]:
-    """{segment: the segment its worker (``hints``, :func:`plan_workers`) does next, or
-    None}: a worker runs its segments in plan order (:func:`submit_segment`)."""
-    out: dict[str, str | None] = {}
-    last: dict[str | None, str] = {}
-    for s in plan.segments_todo:
-        w = hints.get(s)
-        if w in last:
-            out[last[w]] = s
-        last[w] = s
-        out[s] = None
-    return out
-
-
-def submit_segment(
-    client: Any,
-    plan: Plan,
-    segment_id: str,
-    worker: str | None = None,
-    then: str | None = None,
-) -> dict[Any, Batch]:
-    """Submit one segment's batches to Dask: {future: batch}, for :func:`publish_segment`.
-
-    ``worker`` is a loose restriction: the segment's batches prefer that worker (its
-    segment cloud, tile cache and image cache hold the segment's data) but Dask may move
-    them, and will when the worker dies. Segments earlier in the plan get a higher priority,
-    so a worker finishes one segment before it starts the next, whatever the order in which
-    segments are submitted, and a segment's batches run in trajectory order (consecutive
-    batches share images and surfaces). ``then`` is the segment that worker does next
-    (:func:`next_segments`): each batch is told which batch follows it (``ahead`` of
-    :func:`detect_batch`), so the worker prepares that one's cloud and images while it works.
-    """
-    return {
-        client.submit(
-            detect_batch,
-            b,
-            ahead,
-            key=f"{b.key}-{plan.run_id}",
-            pure=False,
-            workers=[worker] if worker else None,
-            # a preference, not a restriction (Dask refuses the flag without workers=)
-            allow_other_workers=bool(worker),
-            # Earlier first. Dask would otherwise run a segment's batches, all of one
-            # priority, in no particular order, and each batch's ``ahead`` would be wrong.
-            priority=-plan.order(b),
-        ): b
-        for b, ahead in batches_ahead(plan, segment_id, then)
-    }
-
-
-def batches_ahead(
-    plan: Plan, segment_id: str, then: str | None = None
-) -> list[tuple[Batch, Batch | None]]:
-    """The segment's batches in trajectory order, each with the batch its worker runs next
-    (the segment's next batch, then the first batch of ``then``; None for the last)."""
-    batches = plan.batches_of(segment_id)
-    following = (*batches[1:], *plan.batches_of(then)[:1]) if then else batches[1:]
-    return [(b, following[k] if k < len(following) else None) for k, b in enumerate(batches)]
-
-
-def publish_segment(client: Any, plan: Plan, futures: dict[Any, Batch]) -> RunSummary:
-    """Publish the batches of :func:`submit_segment` in the index, each in one transaction
-    as it completes; a batch lost (its views crashed the workers) is logged and counted."""
-    from distributed import as_completed
-
+def publish_segment(plan: Plan, finished: Iterable[tuple[Any, Batch]]) -> RunSummary:
+    """Publish one segment's batches in the index, each in one transaction as it ends
+    (``finished``: (Dask future, batch) pairs, from
+    :meth:`streetcd.dispatch.Dispatcher.finished`); a batch lost (its views crashed the
+    workers) is logged and counted."""
     summary = RunSummary(plan.run_id)
     with ChangeIndex(plan.index) as idx:
-        for future in as_completed(futures, loop=client.loop):
+        for future, batch in finished:
             try:
                 records = future.result()
             except Exception as exc:  # e.g. KilledWorker: a view that keeps crashing workers
-                lost = futures[future]
                 log.error(
                     "batch %s lost (%s: %s); its %d views stay unpublished and are "
                     "retried by the next run",
-                    lost.key,
+                    batch.key,
                     type(exc).__name__,
                     exc,
-                    len(lost.tasks),
+                    len(batch.tasks),
                 )
-                summary.n_lost += len(lost.tasks)
+                summary.n_lost += len(batch.tasks)
                 continue
             idx.publish(plan.run_id, records)
             summary.add(records)
             _notify("batch", records)
             future.release()
     return summary
-
-
-def detect_segment(
-    client: Any,
-    plan: Plan,
-    segment_id: str,
-    worker: str | None = None,
-    then: str | None = None,
-) -> RunSummary:
-    """Submit one segment's batches (:func:`submit_segment`) and publish each in one
-    transaction as it completes (:func:`publish_segment`)."""
-    return publish_segment(client, plan, submit_segment(client, plan, segment_id, worker, then))
 
 
 def new_summary(plan: Plan) -> RunSummary:
@@ -1296,17 +1227,23 @@ def run_pipeline(
     """
     from concurrent.futures import ThreadPoolExecutor
 
+    from streetcd.dispatch import Dispatcher
+
     t0 = time.perf_counter()
     with run_lock(index, "streetcd.pipeline.run_pipeline"):
         plan = plan_run(images, poses, store, index, out, params, retry_failed=retry_failed)
         summary = new_summary(plan)
-        hint = plan_workers(client, plan)
-        then = next_segments(plan, hint)
-        # Every batch is submitted before any is waited for: workers start at once.
-        futures = [submit_segment(client, plan, s, hint[s], then[s]) for s in plan.segments_todo]
-        with ThreadPoolExecutor(max_workers=max(1, min(8, len(futures)))) as pool:
-            for part in pool.map(lambda f: publish_segment(client, plan, f), futures):
-                summary.merge(part)
+        segments = plan.segments_todo
+        if segments:
+            dispatcher = Dispatcher(client, plan).start()
+            try:
+                with ThreadPoolExecutor(max(1, min(8, len(segments)))) as pool:
+                    for part in pool.map(
+                        lambda s: publish_segment(plan, dispatcher.finished(s)), segments
+                    ):
+                        summary.merge(part)
+            finally:
+                dispatcher.close()
         finish_run(plan, summary)
     summary.wall_s = time.perf_counter() - t0
     return summary

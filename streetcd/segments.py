@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from streetcd.errors import InputError
 from streetcd.views import View
@@ -175,6 +174,8 @@ def neighbours_of(
     if len(views) < 2:
         return {v.name: () for v in views}
     centers = np.array([v.center for v in views])
+    from scipy.spatial import cKDTree  # here: Dask workers import this module, not use it
+
     tree = cKDTree(centers[:, :2])
     k = min(max_candidates + 1, len(views))  # +1: the view itself comes back too
     dist, idx = tree.query(centers[:, :2], k=k, distance_upper_bound=radius_m)

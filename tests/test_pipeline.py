@@ -143,50 +143,49 @@ def test_the_overlay_tint_is_half_way_to_red_exactly():
     assert np.array_equal(pipeline._tint_red(image.copy(), inner), want)
 
 
-def test_each_batch_is_told_the_next_one_on_its_worker_and_runs_in_order(
-    small_city, cluster, tmp_path
+def test_a_worker_without_a_share_takes_views_from_the_back_and_the_index_is_the_same(
+    small_city, cluster, clean_run, tmp_path
 ):
+    """All of the run is one worker's share, in single-view batches: the other worker takes
+    views from the back of that queue, each with a crop of its own; every view runs once,
+    the owner runs its batches in plan order, and the index equals a clean run's."""
+    from distributed import get_task_stream
+
+    from streetcd.dispatch import Dispatcher
+
+    index = tmp_path / "change_index.sqlite"
     plan = pipeline.plan_run(
         small_city.images,
         small_city.poses,
         small_city.store,
-        tmp_path / "index.sqlite",
+        index,
         tmp_path,
         pipeline.PipelineParams(batch_size=1),
     )
-    segs = plan.segments_todo
-    assert len(segs) >= 2
-    # one worker: one chain through every segment; two: each worker its own
-    chain = pipeline.next_segments(plan, dict.fromkeys(segs, "w0"))
-    assert chain == {**{a: b for a, b in zip(segs, segs[1:], strict=False)}, segs[-1]: None}
-    apart = {s: f"w{k}" for k, s in enumerate(segs)}
-    assert pipeline.next_segments(plan, apart) == dict.fromkeys(segs)
-    pairs = [pair for s in segs for pair in pipeline.batches_ahead(plan, s, chain[s])]
-    assert [b.key for b, _ in pairs] == [b.key for b in plan.batches]
-    assert [a and a.key for _, a in pairs] == [b.key for b in plan.batches[1:]] + [None]
-    # without a next segment, a segment's last batch has nothing ahead
-    assert pipeline.batches_ahead(plan, segs[0])[-1][1] is None
-    # on a real cluster: the scheduler ranks the batches in plan (trajectory) order
-    submitted: dict = {}
-    for s in segs:
-        submitted.update(pipeline.submit_segment(cluster, plan, s, None, chain[s]))
-    keys = {f.key: b.key for f, b in submitted.items()}
-
-    def priorities(dask_scheduler, keys=tuple(keys)):
-        return {k: dask_scheduler.tasks[k].priority for k in keys if k in dask_scheduler.tasks}
-
-    records = cluster.gather(list(submitted))  # the futures keep their tasks on the scheduler
-    assert all(f.status == "finished" for f in submitted)
-    assert sum(len(r) for r in records) == plan.n_views
-    ranked = cluster.run_on_scheduler(priorities)
-    assert set(ranked) == set(keys)
-    assert [keys[k] for k in sorted(ranked, key=ranked.get)] == [b.key for b in plan.batches]
+    owner, other = sorted(cluster.nthreads())
+    dispatcher = Dispatcher(cluster, plan, shares={owner: plan.batches}, tail_views=0)
+    with get_task_stream(cluster) as stream:
+        dispatcher.start()
+        summary = pipeline.new_summary(plan)
+        for s in plan.segments_todo:
+            summary.merge(pipeline.publish_segment(plan, dispatcher.finished(s)))
+    pipeline.finish_run(plan, summary)
+    order = {b.key: k for k, b in enumerate(plan.batches)}
+    ran: dict[str, list[int]] = {owner: [], other: []}
+    for t in sorted(stream.data, key=lambda t: t["startstops"][0]["start"]):
+        ran[t["worker"]].append(order[t["key"].removesuffix(f"-{plan.run_id}")])
+    assert sorted(ran[owner] + ran[other]) == list(range(len(plan.batches)))
+    assert ran[owner] == sorted(ran[owner])
+    assert ran[other], "the worker without a share took nothing"
+    assert summary.n_done == plan.n_views and summary.n_failed == 0
+    assert canonical_dump(index) == canonical_dump(clean_run[1])
 
 
 def test_working_ahead_changes_no_result(small_city, tmp_path):
-    """Detecting every batch with the next one prepared ahead (its segment's crop in the
-    crop thread, its first images and EXIF in the I/O thread) gives the same records and
-    the same mask and overlay files as detecting each batch on its own."""
+    """Detecting every batch with the next one prepared ahead (its first images and EXIF in
+    the I/O thread) and the next segment's crop started from the segment's first batch on
+    (in the crop thread) gives the same records and the same mask and overlay files as
+    detecting each batch on its own."""
     from dataclasses import replace
 
     runs = []
@@ -201,11 +200,13 @@ def test_working_ahead_changes_no_result(small_city, tmp_path):
         records = []
         for k, b in enumerate(plan.batches):
             nxt = plan.batches[k + 1] if ahead and k + 1 < len(plan.batches) else None
-            records += pipeline.detect_batch(b, nxt)
-            if nxt is not None and nxt.segment_id != b.segment_id:
-                entry, mine = pipeline._clouds.claim(pipeline._cloud_key(nxt))
-                # started ahead by this batch (done or not: a short last batch can finish
-                # before the crop thread does, and nothing waits for it until the next batch)
+            later = [c for c in plan.batches[k:] if c.segment_id != b.segment_id]
+            next_segment = later[0] if ahead and later else None
+            records += pipeline.detect_batch(b, nxt, next_segment)
+            if next_segment is not None:
+                entry, mine = pipeline._clouds.claim(pipeline._cloud_key(next_segment))
+                # started ahead by this batch (done or not: a short batch can finish before
+                # the crop thread does, and nothing waits for it until that segment's turn)
                 assert not mine
                 entry.result(timeout=120)
         timeless = [

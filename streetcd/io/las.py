@@ -14,11 +14,14 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import laspy
 import numpy as np
 
 from streetcd.errors import CorruptFileError, InputError, MissingInputError
+
+if TYPE_CHECKING:
+    import laspy
 
 
 @dataclass(frozen=True)
@@ -99,6 +102,8 @@ def write_las(
         without ``origin`` they are CRS coordinates.
     creation_date : the header's creation day (default today); fix it for reproducible files.
     """
+    import laspy  # here, not at the top: Dask workers crop from the tile store without it
+
     path = Path(path)
     origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -201,6 +206,8 @@ class LasInfo:
 
 def las_info(path: str | Path) -> LasInfo:
     """Read the header of ``path``; MissingInputError / CorruptFileError name the file."""
+    import laspy
+
     path = Path(path)
     if not path.exists():
         raise MissingInputError(f"point cloud file not found: {path}")
@@ -232,6 +239,8 @@ def iter_las_chunks(
     Memory is one chunk. A truncated file raises CorruptFileError once the missing part is
     reached (earlier chunks have been yielded); non-finite coordinates raise InputError.
     """
+    import laspy
+
     path = Path(path)
     if chunk_points < 1:
         raise InputError(f"chunk_points must be >= 1, got {chunk_points}")

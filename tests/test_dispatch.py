@@ -1,0 +1,91 @@
+"""Which batch each worker runs next (streetcd.dispatch.WorkQueues): exact bookkeeping on
+hand-made batches; the Dispatcher on a real cluster is tested in test_pipeline."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from streetcd.camera import Intrinsics, Pose
+from streetcd.dispatch import WorkQueues, split_tail
+from streetcd.pipeline import Batch, PipelineParams, ViewTask
+from streetcd.views import View
+
+PARAMS = PipelineParams()
+
+
+def view(name: str) -> View:
+    return View(name, Intrinsics(4, 3, 1.0, 1.0, 2.0, 1.5), Pose(np.eye(3), np.zeros(3)))
+
+
+def segment(seg: str, n_views: int, size: int = 4) -> list[Batch]:
+    """The batches of a segment of ``n_views`` views, ``size`` views each."""
+    views = [view(f"{seg}{k}") for k in range(n_views)]
+    tasks = [ViewTask(v, (), seg, f"h-{v.name}") for v in views]
+    return [
+        Batch(seg, k // size, tuple(tasks[k : k + size]), "store", "out", PARAMS, "p", tuple(views))
+        for k in range(0, n_views, size)
+    ]
+
+
+def names(b: Batch) -> list[str]:
+    return [t.view.name for t in b.tasks]
+
+
+def test_the_tail_is_cut_into_single_views_in_order():
+    batches = segment("A", 6) + segment("B", 9)  # A: 4+2, B: 4+4+1
+    out = split_tail(batches, tail_views=3)
+    # B's last batch is single already; its batch before is cut (1 + 4 >= 3), no more
+    assert [len(b.tasks) for b in out] == [4, 2, 4, 1, 1, 1, 1, 1]
+    assert [n for b in out for n in names(b)] == [n for b in batches for n in names(b)]
+    assert [b.part for b in out[3:]] == [0, 1, 2, 3, None]
+    assert len({b.key for b in out}) == len(out)
+    assert all(b.crop_views == batches[0].crop_views for b in out[:2])
+    assert split_tail(batches, 0) == batches
+
+
+def test_a_worker_runs_its_own_share_in_order_and_is_told_what_follows():
+    a, b = segment("A", 8), segment("B", 4)
+    work = WorkQueues({"w0": a + b}, tail_views=0)
+    assert work.ahead("w0") == (a[0], b[0])
+    got = []
+    while (batch := work.take("w0", {"w0"})) is not None:
+        got.append(batch)
+        nxt, seg = work.ahead("w0")
+        assert nxt is (work.queues["w0"][0] if work.queues["w0"] else None)
+        assert seg is (b[0] if batch.segment_id == "A" and nxt is not b[0] else None)
+    assert got == a + b
+    assert work.ahead("w0") == (None, None) and len(work) == 0
+
+
+def test_a_worker_out_of_work_takes_the_last_single_view_of_the_longest_queue():
+    live = {"w0", "w1", "w2"}
+    work = WorkQueues(
+        {"w0": segment("A", 4), "w1": segment("B", 8), "w2": segment("C", 6)}, tail_views=2
+    )
+    own = [work.take("w0", live) for _ in range(4)]
+    assert [names(b) for b in own if b] == [["A0"], ["A1"], ["A2"], ["A3"]]
+    stolen = work.take("w0", live)
+    assert stolen is not None and names(stolen) == ["B7"]  # w1 had the most views queued
+    assert stolen.crop_views == ()  # cropped for the view alone, not B's whole segment
+    assert work.views["w1"] == 7
+    # the queue it came from still runs in order, and its owner is told so
+    assert work.ahead("w1")[0] is work.queues["w1"][0]
+    assert names(work.take("w1", live)) == ["B0", "B1", "B2", "B3"]
+
+
+def test_the_queue_of_a_worker_that_is_gone_is_served_from_its_front():
+    work = WorkQueues({"w0": segment("A", 4), "gone": segment("B", 8)}, tail_views=0)
+    assert names(work.take("w0", {"w0"})) == ["A0", "A1", "A2", "A3"]
+    first = work.take("w0", {"w0"})
+    assert first is not None and names(first) == ["B0", "B1", "B2", "B3"]
+    assert first.crop_views != ()  # a whole batch keeps the segment's shared crop
+    assert names(work.take("w0", {"w0"})) == ["B4", "B5", "B6", "B7"]
+    assert work.take("w0", {"w0"}) is None and len(work) == 0
+
+
+def test_a_worker_that_joins_takes_from_the_back_of_the_longest_queue():
+    work = WorkQueues({"w0": segment("A", 8), "w1": segment("B", 4)}, tail_views=0)
+    late = work.take("new", {"w0", "w1", "new"})
+    assert late is not None and names(late) == ["A4", "A5", "A6", "A7"]
+    assert late.crop_views != ()
+    assert [names(work.take("w0", {"w0"})) for _ in range(1)] == [["A0", "A1", "A2", "A3"]]
