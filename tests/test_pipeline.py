@@ -181,6 +181,34 @@ def test_a_worker_without_a_share_takes_views_from_the_back_and_the_index_is_the
     assert canonical_dump(index) == canonical_dump(clean_run[1])
 
 
+def test_a_run_started_before_any_worker_is_done_by_the_workers_that_join(
+    small_city, clean_run, tmp_path
+):
+    """No worker when the run starts: the dispatcher hands Dask one batch without a place,
+    and the worker that joins runs it and then the whole queue."""
+    from distributed import Client, LocalCluster
+
+    from streetcd.dispatch import Dispatcher
+
+    index = tmp_path / "change_index.sqlite"
+    with (
+        LocalCluster(n_workers=0, threads_per_worker=1, dashboard_address=":0") as local,
+        Client(local, set_as_default=False) as client,
+    ):
+        plan = pipeline.plan_run(
+            small_city.images, small_city.poses, small_city.store, index, tmp_path, PARAMS
+        )
+        dispatcher = Dispatcher(client, plan).start()
+        assert dispatcher.running == {None: 1} and not client.nthreads()
+        local.scale(1)
+        summary = pipeline.new_summary(plan)
+        for s in plan.segments_todo:
+            summary.merge(pipeline.publish_segment(plan, dispatcher.finished(s)))
+        pipeline.finish_run(plan, summary)
+    assert summary.n_done == plan.n_views and summary.n_failed == 0
+    assert canonical_dump(index) == canonical_dump(clean_run[1])
+
+
 def test_working_ahead_changes_no_result(small_city, tmp_path):
     """Detecting every batch with the next one prepared ahead (its first images and EXIF in
     the I/O thread) and the next segment's crop started from the segment's first batch on
