@@ -90,15 +90,14 @@ class WorkQueues:
         # a single view of another worker's segment: a crop of its own, not the segment's
         return dataclasses.replace(b, crop_views=()) if len(b.tasks) == 1 else b
 
-    def ahead(self, worker: str | None) -> tuple[Batch | None, Batch | None]:
-        """(the batch ``worker`` runs next, the first batch of its next segment), from its
-        own queue; None where unknown."""
+    def ahead(self, worker: str | None, after: Batch) -> tuple[Batch | None, Batch | None]:
+        """What ``worker`` runs after ``after``, from its own queue: (its next batch, the
+        first batch of another segment than ``after``'s); None where unknown."""
         q = self.queues.get(worker)
         if not q:
             return None, None
-        first = q[0]
-        seg = next((b for b in islice(q, 0, 64) if b.segment_id != first.segment_id), None)
-        return first, seg
+        seg = next((b for b in islice(q, 0, 64) if b.segment_id != after.segment_id), None)
+        return q[0], seg
 
     def _pop(self, worker: str | None, batch: Batch) -> Batch:
         self.views[worker] -= len(batch.tasks)
@@ -182,7 +181,7 @@ class Dispatcher:
                     results.put(exc)
 
     def _submit(self, batch: Batch, worker: str | None) -> None:
-        ahead, next_segment = self.work.ahead(worker)
+        ahead, next_segment = self.work.ahead(worker, batch)
         future = self.client.submit(
             detect_batch,
             batch,

@@ -46,15 +46,14 @@ def test_the_tail_is_cut_into_single_views_in_order():
 def test_a_worker_runs_its_own_share_in_order_and_is_told_what_follows():
     a, b = segment("A", 8), segment("B", 4)
     work = WorkQueues({"w0": a + b}, tail_views=0)
-    assert work.ahead("w0") == (a[0], b[0])
     got = []
     while (batch := work.take("w0", {"w0"})) is not None:
         got.append(batch)
-        nxt, seg = work.ahead("w0")
+        nxt, seg = work.ahead("w0", batch)
         assert nxt is (work.queues["w0"][0] if work.queues["w0"] else None)
-        assert seg is (b[0] if batch.segment_id == "A" and nxt is not b[0] else None)
+        assert seg is (b[0] if batch.segment_id == "A" else None)
     assert got == a + b
-    assert work.ahead("w0") == (None, None) and len(work) == 0
+    assert work.ahead("w0", b[-1]) == (None, None) and len(work) == 0
 
 
 def test_a_worker_out_of_work_takes_the_last_single_view_of_the_longest_queue():
@@ -69,7 +68,7 @@ def test_a_worker_out_of_work_takes_the_last_single_view_of_the_longest_queue():
     assert stolen.crop_views == ()  # cropped for the view alone, not B's whole segment
     assert work.views["w1"] == 7
     # the queue it came from still runs in order, and its owner is told so
-    assert work.ahead("w1")[0] is work.queues["w1"][0]
+    assert work.ahead("w1", own[0])[0] is work.queues["w1"][0]
     assert names(work.take("w1", live)) == ["B0", "B1", "B2", "B3"]
 
 
