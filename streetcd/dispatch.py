@@ -11,7 +11,7 @@ segment runs, not only during its last batch).
 The end of each queue, ``tail_views`` views, is cut into single-view batches. A worker that
 has run out of its own queue takes the last batch of the longest queue, and a single view
 taken so comes with a crop of its own (the view and its neighbours, ~15 ms against ~250 ms
-for the segment's; the records and masks are the same, checked on 48 views), so the workers
+for the segment's; the records and masks are the same, checked on 49 views), so the workers
 end within about one view of each other. A queue whose worker is gone is served by the
 others from its front (Dask itself moves the batches that worker held); a worker that joins
 mid-run takes from the back of the longest queue.
