@@ -203,4 +203,4 @@ class Dispatcher:
         self.results[batch.segment_id].put((future, batch))
         with self.lock:
             self.running[worker] -= 1
-        self._top_up()
+            self._top_up()

@@ -1222,8 +1222,8 @@ def run_pipeline(
     """One whole run without Prefect: plan, detect every segment on ``client``, publish.
 
     Holds the index's run lock throughout (:func:`streetcd.index.run_lock`): IndexBusyError
-    at once when another run holds it. The steps below it (plan_run, detect_segment,
-    finish_run) leave locking to their caller.
+    at once when another run holds it. The steps below it (plan_run, the Dispatcher,
+    publish_segment, finish_run) leave locking to their caller.
     """
     from concurrent.futures import ThreadPoolExecutor
 
