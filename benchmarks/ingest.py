@@ -156,7 +156,7 @@ def child(args: argparse.Namespace) -> None:
                 for chunk in reader.chunk_iterator(args.chunk_points):
                     points += len(chunk.X)
     else:
-        from streetcd.tiles import ingest
+        from streetcd.store.ingest import ingest
 
         r = ingest(
             files,
@@ -262,7 +262,7 @@ def coords_table(files: list[Path], work: Path) -> list[str]:
     import zarr
 
     from streetcd.io.las import read_las
-    from streetcd.tiles import _COMPRESSOR
+    from streetcd.store.ingest import _COMPRESSOR
 
     cloud = read_las(files[0], origin=ORIGIN)
     xyz = cloud.xyz[:2_000_000]
@@ -303,7 +303,7 @@ def crop_store(
     times its build against a plain laspy read of the same files (the baseline)."""
     import laspy
 
-    from streetcd.tiles import ingest
+    from streetcd.store.ingest import ingest
 
     cols = max(5, math.ceil(math.sqrt(n_tiles)))
     rows = math.ceil(n_tiles / cols)
@@ -347,10 +347,10 @@ def crop_store(
 def crop_table(args: argparse.Namespace, work: Path) -> list[str]:
     """Two tables: store build time per tile count (baseline: a plain laspy read of the same
     files), and crop latency per view (baseline: the smallest store, same views)."""
-    from streetcd.camera import Intrinsics, look_at
-    from streetcd.crop import crop_for_view
-    from streetcd.tiles import TILE_CACHE, TileStore
-    from streetcd.views import View
+    from streetcd.geometry.camera import look_at
+    from streetcd.store.crop import crop_for_view
+    from streetcd.store.tiles import TileStore, tile_cache
+    from streetcd.types import Intrinsics, View
 
     rng = np.random.default_rng(1)
     tile = args.tile_size
@@ -388,11 +388,11 @@ def crop_table(args: argparse.Namespace, work: Path) -> list[str]:
         lookup_us = (time.perf_counter() - t0) * 1000
         cold = []
         for v in views[:10]:
-            TILE_CACHE.clear()
+            tile_cache().clear()
             t0 = time.perf_counter()
             crop_for_view(store, v)
             cold.append(time.perf_counter() - t0)
-        TILE_CACHE.clear()
+        tile_cache().clear()
         for v in views:  # warm-up pass fills the cache
             crop_for_view(store, v)
         warm, sizes = [], []

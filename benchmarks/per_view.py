@@ -7,17 +7,17 @@ For each image size a small synthetic street (6 images) is generated once and ca
 warm-up (numba compilation, caches), and the median of every step is printed:
 
 * project + z-buffer (eq. 1–3) and surface (triangulation, rasters) for the view and its
-  3 neighbours, as :func:`streetcd.detect.detect_view` does them;
+  3 neighbours, as :func:`streetcd.detect.chain.detect_view` does them;
 * correlate: histogram stretching of the view, the neighbours' colour envelopes and the
-  raw change (eq. 4–5), with the pairwise levels and the near-depth hypothesis (:mod:`streetcd.silhouette`);
-* appearance: the reference-colour check (:mod:`streetcd.appearance`);
+  raw change (eq. 4–5), with the pairwise levels and the near-depth hypothesis (:mod:`streetcd.detect.silhouette`);
+* appearance: the reference-colour check (:mod:`streetcd.detect.appearance`);
 * superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
-* refine: the regions' pixel outlines by colour (:mod:`streetcd.refine`) and the speckle
+* refine: the regions' pixel outlines by colour (:mod:`streetcd.detect.refine`) and the speckle
   filter again;
 * total: :func:`detect_view` end to end (its own run, not the sum), every surface built;
 * total_in_a_run: the same call as the flow makes it, with the neighbours' surfaces already
   built (each image's surface is built once per run and kept while its segment is detected,
-  :class:`streetcd.detect.SurfaceCache`), so only the view's own surface is built.
+  :class:`streetcd.detect.cache.SurfaceCache`), so only the view's own surface is built.
 
 Baseline in the same run: scikit-image ``slic`` on the full-resolution image with the same
 number of segments, against the detector's superpixel path (SLIC at a working resolution).
@@ -25,7 +25,7 @@ Goal: ≤ 0.6 s per 2 MP view, ≤ 3 s per 12 MP view, ≤ 2 GB peak; both total
 against it.
 
 Each size runs in a fresh child process with the malloc settings of a flow's workers
-(:data:`streetcd.pipeline.WORKER_MALLOC_ENV`). Peak memory is measured there:
+(:data:`streetcd.run.cluster.WORKER_MALLOC_ENV`). Peak memory is measured there:
 ``ru_maxrss`` after loading the scene (cloud and 6 images), after the first detection (every
 surface built: the goal's number), and at the end (the benchmark's own step-by-step run
 holds every surface at once, and the in-a-run cache four).
@@ -73,7 +73,7 @@ N_IMAGES = 6  # enough that the middle view has 3 overlapping neighbours (4 gave
 
 
 def scene_for(size: tuple[int, int]) -> Path:
-    from streetcd.evaluate import ensure_scene
+    from streetcd.eval.evaluate import ensure_scene
 
     return ensure_scene(SCENES, seed=0, n_images=N_IMAGES, size=size)
 
@@ -86,14 +86,15 @@ def _fresh_cloud(scene):
 
 
 def _setup(size: tuple[int, int]):
-    from streetcd.evaluate import load_scene, read_image
-    from streetcd.neighbours import select_neighbours
-    from streetcd.params import load_params
+    from streetcd.config import load_config
+    from streetcd.eval.evaluate import load_scene
+    from streetcd.geometry.neighbours import select_neighbours
+    from streetcd.io.images import read_image
 
     scene = load_scene(scene_for(size))
-    params = load_params(
+    params = load_config(
         ROOT / "configs" / "default.yaml" if (ROOT / "configs" / "default.yaml").exists() else None
-    )
+    ).detect
     view = scene.views[len(scene.views) // 2]
     nbs = select_neighbours(view, scene.views, n=3)
     if len(nbs) != 3:
@@ -106,17 +107,17 @@ def _setup(size: tuple[int, int]):
 def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     """One detection split into the paper's steps (the same calls as detect_view: the
     metric z-buffer of surface_for_view, the neighbours' uint8 colour envelopes)."""
-    from streetcd.correlate import stretch_lut
-    from streetcd.detect import (
+    from streetcd.detect.chain import (
         _neighbour,
         _raw_change_at_cell_scale,
         _with_near_hypothesis,
         fuse_appearance,
     )
-    from streetcd.graphcut import cut_changes, node_energy, superpixels
-    from streetcd.refine import refined_mask
-    from streetcd.surface import _zbuffer_params_for, rgb8, view_surface
-    from streetcd.zbuffer import project_cloud, weighted_zbuffer
+    from streetcd.detect.correlate import stretch_lut
+    from streetcd.detect.graphcut import cut_changes, node_energy, superpixels
+    from streetcd.detect.refine import refined_mask
+    from streetcd.detect.surface import _zbuffer_params_for, rgb8, view_surface
+    from streetcd.detect.zbuffer import project_cloud, weighted_zbuffer
 
     t: dict[str, float] = dict.fromkeys(STEPS[:N_STEPS], 0.0)
     cloud = scene.cloud
@@ -181,15 +182,16 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
 
 def detect_in_a_run(scene, params, view, image, neighbours) -> float:
     """Seconds of :func:`detect_view` as the flow runs it: every image's surface is built
-    once and kept (:class:`streetcd.detect.SurfaceCache`) while its segment is detected, so
+    once and kept (:class:`streetcd.detect.cache.SurfaceCache`) while its segment is detected, so
     a view whose neighbours came before or were needed by an earlier view builds only its
     own surface. The neighbours' surfaces are put in a fresh cache first, untimed."""
-    from streetcd.detect import SurfaceCache, _surface, detect_view
+    from streetcd.detect.cache import SurfaceCache
+    from streetcd.detect.chain import detect_view, view_surface_of
 
     cloud = _fresh_cloud(scene)
     cache = SurfaceCache()
     for img, v in neighbours:
-        _surface(img, v.local(cloud.origin), cloud, params, cache)
+        view_surface_of(img, v.local(cloud.origin), cloud, params, cache)
     t0 = time.perf_counter()
     detect_view(image, view, neighbours, cloud, params, surfaces=cache)
     return time.perf_counter() - t0
@@ -199,7 +201,7 @@ def baseline_slic_once(image: np.ndarray, params) -> float:
     """scikit-image SLIC at full resolution, as many segments as the detector's cells."""
     from skimage.segmentation import slic
 
-    from streetcd.params import scale_px
+    from streetcd.config import scale_px
 
     h, w = image.shape[:2]
     cell = scale_px(params.graphcut.superpixel_cell_px, w, minimum=2.0)
@@ -215,7 +217,7 @@ def baseline_slic_once(image: np.ndarray, params) -> float:
 
 def run_size(size: tuple[int, int], repeat: int) -> dict:
     """Timings (medians) and memory of one size; run in a fresh process."""
-    from streetcd.detect import detect_view
+    from streetcd.detect.chain import detect_view
 
     scene, params, view, image, neighbours = _setup(size)
     rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MiB on Linux
@@ -257,7 +259,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    from streetcd.pipeline import WORKER_MALLOC_ENV
+    from streetcd.run.cluster import WORKER_MALLOC_ENV
 
     if args.child:
         w, h = map(int, args.child.split("x"))

@@ -40,10 +40,11 @@ import numpy as np  # noqa: E402
 from scipy.spatial import Delaunay  # noqa: E402
 
 from streetcd import classes as cls  # noqa: E402
-from streetcd.camera import Intrinsics, look_at  # noqa: E402
-from streetcd.params import DetectParams, scale_px  # noqa: E402
-from streetcd.surface import _triangulate, rasterise, surface_for_view  # noqa: E402
-from streetcd.zbuffer import block_zbuffer, project_cloud, weighted_zbuffer  # noqa: E402
+from streetcd.config import DetectParams, scale_px  # noqa: E402
+from streetcd.detect.surface import _triangulate, rasterise, surface_for_view  # noqa: E402
+from streetcd.detect.zbuffer import block_zbuffer, project_cloud, weighted_zbuffer  # noqa: E402
+from streetcd.geometry.camera import look_at  # noqa: E402
+from streetcd.types import Intrinsics
 
 cv2.setNumThreads(1)
 

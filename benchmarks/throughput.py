@@ -30,13 +30,12 @@ average (``os.getloadavg``) is printed before and after each run for the same re
 ``ceiling`` (``--ceiling-views``, default 48): what this machine allows, without Dask or
 Prefect. That many views of the city's first segments are split in two halves; one bare
 process detects each half alone, then two processes detect both halves at once (same
-worker settings: one OpenCV thread, :data:`streetcd.pipeline.WORKER_MALLOC_ENV`). Two over
+worker settings: one OpenCV thread, :data:`streetcd.run.cluster.WORKER_MALLOC_ENV`). Two over
 a half's mean slowdown is the speed-up two detectors get from two cores when nothing else
 runs. Most of that slowdown is the workers' own helper threads: a lone worker has the
 second core free for its image decoding, crops and writes, which two workers must fit
-between their detections. The detector itself barely notices the other core: its
-per-step times with a second detector running were within 1 % of alone, and the detection
-thread's CPU time over 100 views rose 1–3 %.
+between their detections. The detector itself barely notices the other core
+(docs/BENCHMARKS.md, "The ceiling of two workers").
 """
 
 from __future__ import annotations
@@ -54,8 +53,8 @@ from typing import Any
 
 def make_city(root: Path, views: int, size: tuple[int, int], seed: int) -> dict[str, str]:
     """The synthetic city (reused when ``root`` already has it) and its tile store."""
+    from streetcd.store.ingest import ingest
     from streetcd.synth import generate_city
-    from streetcd.tiles import ingest
 
     streets = max(1, math.ceil(views / 25))
     per_street = math.ceil(views / streets)
@@ -83,26 +82,27 @@ def warm_up(paths: dict[str, str], folder: Path) -> None:
     """Detect two views in this process, untimed: numba compiles the detector's kernels
     into its on-disk cache once, so that no timed worker pays for compilation (it still
     loads the cache, and that is counted)."""
-    from streetcd import pipeline
+    from streetcd.run.plan import plan_run
+    from streetcd.run.worker import detect_batch
 
     shutil.rmtree(folder, ignore_errors=True)
-    plan = pipeline.plan_run(**paths, index=folder / "index.sqlite", out=folder)
+    plan = plan_run(**paths, index=folder / "index.sqlite", out=folder)
     first = plan.batches[0]
-    pipeline.detect_batch(dataclasses.replace(first, tasks=first.tasks[:2]))
+    detect_batch(dataclasses.replace(first, tasks=first.tasks[:2]))
 
 
 def _bare_detect(batches: list[Any]) -> float:
     """Detect ``batches`` in this (spawned) process, one view untimed first: wall seconds."""
     import cv2
 
-    from streetcd import pipeline
+    from streetcd.run.worker import detect_batch
 
     cv2.setNumThreads(1)
     first = batches[0]
-    pipeline.detect_batch(dataclasses.replace(first, tasks=first.tasks[:1]))
+    detect_batch(dataclasses.replace(first, tasks=first.tasks[:1]))
     t0 = time.perf_counter()
     for k, b in enumerate(batches):
-        pipeline.detect_batch(b, batches[k + 1] if k + 1 < len(batches) else None)
+        detect_batch(b, batches[k + 1] if k + 1 < len(batches) else None)
     return time.perf_counter() - t0
 
 
@@ -113,10 +113,11 @@ def ceiling(paths: dict[str, str], folder: Path, n_views: int) -> dict[str, floa
     from concurrent.futures import ProcessPoolExecutor
     from multiprocessing import get_context
 
-    from streetcd import pipeline
+    from streetcd.run.cluster import WORKER_MALLOC_ENV
+    from streetcd.run.plan import plan_run
 
     shutil.rmtree(folder, ignore_errors=True)
-    plan = pipeline.plan_run(**paths, index=folder / "index.sqlite", out=folder)
+    plan = plan_run(**paths, index=folder / "index.sqlite", out=folder)
     batches, n = [], 0
     for b in plan.batches:
         if n >= n_views:
@@ -124,8 +125,8 @@ def ceiling(paths: dict[str, str], folder: Path, n_views: int) -> dict[str, floa
         batches.append(b)
         n += len(b.tasks)
     halves = (batches[: len(batches) // 2], batches[len(batches) // 2 :])
-    saved = {k: os.environ.get(k) for k in pipeline.WORKER_MALLOC_ENV}
-    os.environ.update(pipeline.WORKER_MALLOC_ENV)  # read by glibc when a child starts
+    saved = {k: os.environ.get(k) for k in WORKER_MALLOC_ENV}
+    os.environ.update(WORKER_MALLOC_ENV)  # read by glibc when a child starts
     try:
         ctx = get_context("spawn")
         with ProcessPoolExecutor(1, mp_context=ctx) as pool:
@@ -147,7 +148,7 @@ def load() -> str:
 
 
 def measure(paths: dict[str, str], out: Path, workers: int, batch_size: int) -> dict[str, Any]:
-    from flows.nightly import nightly
+    from streetcd_flows.nightly import nightly
 
     shutil.rmtree(out, ignore_errors=True)
     before = load()

@@ -41,7 +41,7 @@ NAMES: dict[int, str] = {
 LOW_WEIGHT = (VEGETATION, ROAD, GROUND)
 
 # Classes whose reference colours the appearance check compares with the image
-# (:mod:`streetcd.appearance`): the street inventory a city keeps, where "is the object
+# (:mod:`streetcd.detect.appearance`): the street inventory a city keeps, where "is the object
 # still there?" is the question, and where a removed or replaced object often leaves no
 # geometric trace a neighbour can see (a board in front of a plain wall, a hedge in place of
 # a railing).

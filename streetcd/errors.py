@@ -33,3 +33,11 @@ class EmptyViewError(StreetcdError, RuntimeError):
 
 class OptionalDependencyError(StreetcdError, ImportError):
     """An optional backend (e.g. PDAL) was asked for but is not installed."""
+
+
+class StoreLockedError(StreetcdError, RuntimeError):
+    """Another ingest holds the tile store's lock."""
+
+
+class IndexBusyError(StreetcdError, RuntimeError):
+    """Another run holds the change index's run lock."""

@@ -38,8 +38,8 @@ class City:
 def small_city(tmp_path_factory) -> City:
     """A synthetic city of 2 short streets × 4 small images (the first with changes), its
     cloud ingested into a tile store. About 20 s to make."""
+    from streetcd.store.ingest import ingest
     from streetcd.synth import generate_city
-    from streetcd.tiles import ingest
 
     root = tmp_path_factory.mktemp("city")
     manifest = Path(

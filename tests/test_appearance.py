@@ -1,4 +1,4 @@
-"""Reference-colour check (streetcd.appearance): colour transfer, the illumination-tolerant
+"""Reference-colour check (streetcd.detect.appearance): colour transfer, the illumination-tolerant
 distance and where it is checked, on small exact images."""
 
 from __future__ import annotations
@@ -6,15 +6,15 @@ from __future__ import annotations
 import numpy as np
 
 from streetcd import classes as cls
-from streetcd.appearance import (
+from streetcd.config import AppearanceParams
+from streetcd.detect.appearance import (
     appearance_change,
     colour_distance,
     fill_nearest,
     footprint,
     transfer_colours,
 )
-from streetcd.params import AppearanceParams
-from streetcd.surface import rasterise, rgb8
+from streetcd.detect.surface import rasterise, rgb8
 
 H, W = 100, 100
 

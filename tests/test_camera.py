@@ -3,9 +3,8 @@
 import numpy as np
 import pytest
 
-from streetcd.camera import (
-    Intrinsics,
-    Pose,
+from streetcd.errors import InputError
+from streetcd.geometry.camera import (
     backproject,
     backproject_depth_map,
     distort,
@@ -18,7 +17,7 @@ from streetcd.camera import (
     rotation_to_quaternion,
     undistort,
 )
-from streetcd.errors import InputError
+from streetcd.types import Intrinsics, Pose
 
 INTR = Intrinsics(1920, 1080, 1400.0, 1402.0, 959.5, 539.5, (-0.08, 0.02, 0.001, -0.0005, 0.003))
 UTM = np.array([372_000.0, 143_000.0, 12.0])

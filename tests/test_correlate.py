@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from streetcd import classes
-from streetcd.camera import Intrinsics, backproject, look_at, pixel_grid, pixel_rays, project
-from streetcd.correlate import (
+from streetcd.config import CorrelateParams
+from streetcd.detect.correlate import (
     Neighbour,
     camera_rays,
     hole_depths,
@@ -22,7 +22,8 @@ from streetcd.correlate import (
     stretch_histogram,
     stretch_lut,
 )
-from streetcd.params import CorrelateParams
+from streetcd.geometry.camera import backproject, look_at, pixel_grid, pixel_rays, project
+from streetcd.types import Intrinsics
 
 INTR = Intrinsics(160, 120, 140.0, 140.0, 79.5, 59.5)
 WALL_Y = 10.0
@@ -208,7 +209,7 @@ def test_tree_and_road_pixels_are_down_weighted(weight):
 
 def test_fused_kernel_matches_the_remap_reference_with_distortion_and_occlusion():
     """raw_change (one numba pass) = min over warp_neighbour + color_distance (cv2.remap)."""
-    from streetcd.correlate import color_distance, warp_neighbour
+    from streetcd.detect.correlate import color_distance, warp_neighbour
 
     distorted = Intrinsics(160, 120, 140.0, 140.0, 79.5, 59.5, (-0.15, 0.02, 0.001, 0.0, 0.0))
     image, depth = render_wall(wall_pose(0.0))
@@ -239,7 +240,7 @@ def test_fused_kernel_matches_the_remap_reference_with_distortion_and_occlusion(
 def test_stretched_envelope_equals_the_envelope_of_the_stretched_image(radius):
     """Guards the shortcut detect_view takes for neighbours (erode/dilate on uint8, then the
     stretch): the stretch is non-decreasing per channel, so the result is bit-identical."""
-    from streetcd.correlate import colour_envelope, stretch_histogram, stretched_envelope
+    from streetcd.detect.correlate import colour_envelope, stretch_histogram, stretched_envelope
 
     image = np.random.default_rng(3).integers(0, 256, (61, 83, 3), dtype=np.uint8)
     image[..., 2] = 7  # a flat channel: passed through unchanged
@@ -254,7 +255,11 @@ def test_uint8_envelope_with_lut_gives_the_same_raw_change_as_the_float_envelope
     """Guards the path detect_view takes for neighbours: the uint8 envelope
     (envelope_levels) stretched through its look-up table as raw_change samples it equals
     the float32 envelope of the stretched image, bit for bit."""
-    from streetcd.correlate import envelope_levels, registration_radius_px, stretched_envelope
+    from streetcd.detect.correlate import (
+        envelope_levels,
+        registration_radius_px,
+        stretched_envelope,
+    )
 
     params = CorrelateParams(registration_tolerance_px=tolerance_px)
     image_p, depth_p = render_wall(wall_pose(0.0))

@@ -1,22 +1,18 @@
-"""Cropping the cloud a view can see (streetcd.crop)."""
+"""Cropping the cloud a view can see (streetcd.store.crop)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from streetcd.camera import Intrinsics, look_at
-from streetcd.crop import (
-    convex_hull_2d,
-    crop_for_view,
-    crop_for_views,
-    in_frustum,
-    view_footprint,
-)
 from streetcd.errors import CRSMismatchError, InputError
+from streetcd.geometry.camera import look_at
+from streetcd.geometry.frustum import convex_hull_2d, in_frustum, view_footprint
 from streetcd.io.las import read_las, write_las
-from streetcd.tiles import TILE_CACHE, TileStore, ingest
-from streetcd.views import View
+from streetcd.store.crop import crop_for_view, crop_for_views
+from streetcd.store.ingest import ingest
+from streetcd.store.tiles import TileStore, tile_cache
+from streetcd.types import Intrinsics, View
 
 ORIGIN = np.array([421_000.0, 5_632_000.0, 0.0])  # CRS metres
 INTR = Intrinsics(width=64, height=48, fx=40.0, fy=40.0, cx=31.5, cy=23.5)
@@ -135,13 +131,13 @@ def test_convex_hull_is_counter_clockwise():
 def test_crop_equals_brute_force_crop_of_the_full_cloud(scene, case):
     view, max_range, buffer = VIEWS[case]
     store = scene["store"]
-    TILE_CACHE.clear()
-    misses = TILE_CACHE.misses
+    tile_cache().clear()
+    misses = tile_cache().misses
     cloud = crop_for_view(store, view, max_range_m=max_range, buffer_m=buffer)
     want = brute_force(scene, view, max_range, buffer)
     got = np.sort(cloud.gps_time) if len(cloud) else np.empty(0)  # empty: no optional fields
     np.testing.assert_array_equal(got, want)
-    assert TILE_CACHE.misses - misses < len(store)  # only the tiles the frustum meets
+    assert tile_cache().misses - misses < len(store)  # only the tiles the frustum meets
     assert np.array_equal(cloud.origin, store.origin) and cloud.crs == "EPSG:32633"
     if case == 4:
         assert len(cloud) == 0 and cloud.xyz.shape == (0, 3)
@@ -183,12 +179,12 @@ def test_crop_by_store_path_returns_classes_and_rgb(scene):
 
 
 def test_neighbouring_views_reuse_cached_tiles(scene):
-    TILE_CACHE.clear()
+    tile_cache().clear()
     crop_for_view(scene["store"], view_at([5.0, 30.0, 2.0], [40.0, 30.0, 2.0]), max_range_m=25.0)
-    hits, misses = TILE_CACHE.hits, TILE_CACHE.misses
+    hits, misses = tile_cache().hits, tile_cache().misses
     crop_for_view(scene["store"], view_at([7.0, 30.0, 2.0], [42.0, 30.0, 2.0]), max_range_m=25.0)
-    assert TILE_CACHE.hits - hits >= 5
-    assert TILE_CACHE.misses - misses <= 3  # only the tiles newly in view are read
+    assert tile_cache().hits - hits >= 5
+    assert tile_cache().misses - misses <= 3  # only the tiles newly in view are read
 
 
 def test_crop_files_with_different_crs_names_the_file(tmp_path):

@@ -14,26 +14,22 @@ import pytest
 from click.testing import CliRunner
 
 from streetcd import classes
-from streetcd.camera import Intrinsics, Pose, look_at, pixel_grid, pixel_rays
 from streetcd.cli.detect import detect
-from streetcd.detect import (
-    DetectionResult,
-    detect_files,
-    detect_view,
-    load_clouds,
-    read_image,
-)
-from streetcd.errors import CorruptFileError, EmptyViewError, MissingInputError
-from streetcd.io.las import PointCloud, write_las
-from streetcd.io.poses import read_poses, write_opk_csv
-from streetcd.params import (
+from streetcd.config import (
     AppearanceParams,
     DetectParams,
     SurfaceParams,
     ZBufferParams,
-    load_params,
 )
-from streetcd.views import PoseSet, View
+from streetcd.detect.cache import SurfaceCache
+from streetcd.detect.chain import DetectionResult, detect_view
+from streetcd.errors import CorruptFileError, EmptyViewError, MissingInputError
+from streetcd.geometry.camera import look_at, pixel_grid, pixel_rays
+from streetcd.io.images import read_image
+from streetcd.io.las import load_clouds, write_las
+from streetcd.io.poses import read_poses, write_opk_csv
+from streetcd.run.single import detect_files
+from streetcd.types import Intrinsics, PointCloud, Pose, PoseSet, View
 
 INTR = Intrinsics(320, 240, 280.0, 280.0, 159.5, 119.5)
 ORIGIN = np.array([500000.0, 4000000.0, 100.0])  # CRS metres of the local frame
@@ -140,9 +136,9 @@ def images() -> dict[str, np.ndarray]:
     return {name: render(x)[0] for name, x in CAMERAS.items()}
 
 
-def run(images, cloud) -> DetectionResult:
+def run(images, cloud, surfaces: SurfaceCache | None = None) -> DetectionResult:
     nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
-    return detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS)
+    return detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS, surfaces=surfaces)
 
 
 def test_no_change_gives_an_empty_mask(images):
@@ -176,7 +172,7 @@ def test_a_board_missing_from_the_cloud_is_detected(images):
 
 def test_the_unscanned_half_of_a_near_object_is_not_a_change(images):
     """The scanner saw only the right half of the board (x > 0), the cameras see all of it.
-    Without the near-depth hypothesis (streetcd.silhouette) the left half, whose old surface
+    Without the near-depth hypothesis (streetcd.detect.silhouette) the left half, whose old surface
     is the wall behind, is a change; with it, the neighbours sampled at the board's depth
     agree with the image there."""
     from dataclasses import replace
@@ -202,7 +198,7 @@ def test_the_unscanned_half_of_a_near_object_is_not_a_change(images):
 
 def test_a_board_removed_from_a_plain_wall_is_seen_only_by_the_reference_colours():
     """The paper's eq. 5 cannot see it (every neighbour, sampled through the board's old
-    depth, shows the same plaster); the old cloud's colours can (streetcd.appearance)."""
+    depth, shows the same plaster); the old cloud's colours can (streetcd.detect.appearance)."""
     plain = {name: render(x, board=False, plain=True)[0] for name, x in CAMERAS.items()}
     cloud = with_colours(make_cloud(board=True))
     was_board = render(0.0)[1]
@@ -220,24 +216,25 @@ def test_a_board_removed_from_a_plain_wall_is_seen_only_by_the_reference_colours
     assert result.regions[0].dominant_class == classes.SIGN  # the old object, located
 
 
-def test_a_cloud_without_colours_runs_the_papers_method_and_says_so_once(
-    images, caplog, monkeypatch
-):
-    import streetcd.detect as detect_module
-
-    monkeypatch.setattr(detect_module, "_told_no_colours", False)
+def test_a_cloud_without_colours_runs_the_papers_method_and_says_so_once_per_cache(images, caplog):
     cloud = make_cloud(board=False)  # no rgb
     # a LAS format with RGB fields that the writer left at zero has no colours either
     black = PointCloud(
         cloud.xyz, cloud.origin, cloud.classification, rgb=np.zeros((len(cloud), 3), np.uint16)
     )
-    with caplog.at_level("WARNING", logger="streetcd.detect"):
-        first = run(images, cloud)
-        second = run(images, black)
+    cache = SurfaceCache()  # a worker's: one warning for its whole run
+    with caplog.at_level("WARNING", logger="streetcd.detect.chain"):
+        first = run(images, cloud, surfaces=cache)
+        second = run(images, black, surfaces=cache)
     assert first.appearance is None and second.appearance is None
     assert np.array_equal(first.mask, second.mask)
     said = [r.getMessage() for r in caplog.records if "no colours" in r.getMessage()]
     assert len(said) == 1 and "reference-colour check" in said[0]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="streetcd.detect.chain"):
+        run(images, cloud)  # without a cache every call says it
+        run(images, cloud)
+    assert sum("no colours" in r.getMessage() for r in caplog.records) == 2
 
 
 def test_a_view_that_sees_no_points_names_the_view(images):
@@ -423,12 +420,12 @@ def test_a_missing_image_file_names_the_view(scene_dir, tmp_path):
 def test_default_config_mirrors_the_parameter_defaults():
     import yaml
 
-    from streetcd.params import params_to_dict
+    from streetcd.config import Config, config_to_dict, load_config
 
     path = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
-    assert load_params(path) == DetectParams()
-    # every parameter is written out, so the file shows the whole set
-    assert yaml.safe_load(path.read_text())["detect"] == params_to_dict(DetectParams())
+    assert load_config(path) == Config()
+    # every setting is written out, so the file shows the whole set
+    assert yaml.safe_load(path.read_text()) == config_to_dict(Config())
 
 
 def test_raw_change_on_large_cells_is_computed_coarser_and_agrees(images):
@@ -452,8 +449,6 @@ def test_raw_change_on_large_cells_is_computed_coarser_and_agrees(images):
 
 
 def test_surface_cache_reuses_surfaces_and_gives_the_same_result(images):
-    from streetcd.detect import SurfaceCache
-
     cloud = make_cloud(board=False)
     nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
     fresh = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS, surfaces=None)
@@ -474,8 +469,6 @@ def test_surface_cache_reuses_surfaces_and_gives_the_same_result(images):
 
 
 def test_surface_cache_misses_for_another_cloud_image_or_pose(images):
-    from streetcd.detect import SurfaceCache
-
     cache = SurfaceCache()
     cloud = make_cloud(board=False)
     p, view = images["p.png"], make_view("p.png")
@@ -494,8 +487,6 @@ def test_surface_cache_misses_for_another_cloud_image_or_pose(images):
 
 
 def test_surface_cache_stays_within_its_byte_bound(images):
-    from streetcd.detect import SurfaceCache
-
     one = 240 * 320 * (4 + 1 + 1)  # depth float32, classes uint8, valid bool
     cache = SurfaceCache(max_bytes=2 * one)
     nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
@@ -505,8 +496,6 @@ def test_surface_cache_stays_within_its_byte_bound(images):
 
 def test_surface_cache_forgets_the_surfaces_of_a_freed_cloud(images):
     import gc
-
-    from streetcd.detect import SurfaceCache
 
     cache = SurfaceCache()
     nbs = [(images["a.png"], make_view("a.png"))]
@@ -522,8 +511,8 @@ def test_surface_cache_forgets_the_surfaces_of_a_freed_cloud(images):
 def test_image_checksum_is_kept_only_for_images_nothing_can_change():
     import zlib
 
-    from streetcd.detect import _CHECKSUMS, image_checksum
-
+    cache = SurfaceCache()
+    image_checksum, _CHECKSUMS = cache.checksum, cache.checksums
     image = np.arange(3 * 4 * 5, dtype=np.uint8).reshape(3, 4, 5) + np.uint8(1)
     assert image_checksum(image) == zlib.crc32(image.tobytes())
     assert id(image) not in _CHECKSUMS.items  # writeable: recomputed every time

@@ -1,16 +1,16 @@
-"""Which batch each worker runs next (streetcd.dispatch.WorkQueues): exact bookkeeping on
+"""Which batch each worker runs next (streetcd.run.dispatch.WorkQueues): exact bookkeeping on
 hand-made batches; the Dispatcher on a real cluster is tested in test_pipeline."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from streetcd.camera import Intrinsics, Pose
-from streetcd.dispatch import WorkQueues, split_tail
-from streetcd.pipeline import Batch, PipelineParams, ViewTask
-from streetcd.views import View
+from streetcd.config import Config
+from streetcd.run.dispatch import WorkQueues, split_tail
+from streetcd.run.plan import Batch, ViewTask
+from streetcd.types import Intrinsics, Pose, View
 
-PARAMS = PipelineParams()
+PARAMS = Config()
 
 
 def view(name: str) -> View:

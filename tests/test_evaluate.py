@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from streetcd.evaluate import threshold_baseline
-from streetcd.params import CorrelateParams
+from streetcd.config import CorrelateParams
+from streetcd.eval.evaluate import threshold_baseline
 
 
 def test_threshold_baseline_keeps_pixels_at_or_above_the_threshold():
@@ -33,8 +33,8 @@ def tiny_street(tmp_path_factory):
 
 
 def test_evaluate_scene_pools_every_view_and_scores_the_baselines(tiny_street):
-    from streetcd.evaluate import evaluate_scene
-    from streetcd.metrics import PixelCounts
+    from streetcd.eval.evaluate import evaluate_scene
+    from streetcd.eval.metrics import PixelCounts
 
     report = evaluate_scene(tiny_street)
     assert [v.name for v in report.views] == ["IMG_0000.jpg", "IMG_0001.jpg", "IMG_0002.jpg"]
@@ -71,7 +71,7 @@ def test_evaluate_scene_pools_every_view_and_scores_the_baselines(tiny_street):
 
 
 def _dontcare(root, name):
-    from streetcd.evaluate import read_mask
+    from streetcd.eval.evaluate import read_mask
 
     return read_mask(root / "truth" / f"{Path(name).stem}.dontcare.png")
 
@@ -104,7 +104,7 @@ def test_cli_needs_a_scene_or_a_sweep():
 
 def test_missing_manifest_is_named(tmp_path):
     from streetcd.errors import MissingInputError
-    from streetcd.evaluate import load_scene
+    from streetcd.eval.evaluate import load_scene
 
     with pytest.raises(MissingInputError, match="no manifest.json"):
         load_scene(tmp_path)
@@ -113,9 +113,9 @@ def test_missing_manifest_is_named(tmp_path):
 def test_regraphcut_with_the_same_params_reproduces_the_detector_mask(tiny_street):
     """The ablation baselines re-run only the graph cut; with unchanged parameters that must
     give the detector's own mask (same stretched image, superpixels, energy)."""
-    from streetcd.detect import detect_view
-    from streetcd.evaluate import load_scene, read_image, regraphcut
-    from streetcd.params import DetectParams
+    from streetcd.config import DetectParams
+    from streetcd.detect.chain import detect_view
+    from streetcd.eval.evaluate import load_scene, read_image, regraphcut
 
     scene = load_scene(tiny_street)
     view, *others = scene.views
@@ -132,8 +132,8 @@ def test_registration_tolerance_absorbs_a_two_pixel_misregistration():
     """Guards the tuned default (docs/TUNING.md): a neighbour whose image is the view's image
     shifted by 2 px (a registration error) gives raw change at every edge with the paper's
     pixel difference, and none with a colour envelope of radius 2."""
-    from streetcd.camera import Intrinsics, Pose
-    from streetcd.correlate import Neighbour, raw_change
+    from streetcd.detect.correlate import Neighbour, raw_change
+    from streetcd.types import Intrinsics, Pose
 
     rng = np.random.default_rng(7)
     w, h = 4000, 40  # REFERENCE_WIDTH_PX wide, so tolerance_px is the radius in pixels

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from streetcd.index import ChangeIndex, canonical_dump
 from streetcd.io.poses import read_poses
+from streetcd.store.index import ChangeIndex, canonical_dump
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def flow_run(small_city, prefect_api_url, tmp_path_factory):
     """The nightly flow once, ingesting the city's archive into a new store:
     (state, index path, out folder)."""
-    from flows.nightly import nightly
+    from streetcd_flows.nightly import nightly
 
     out = tmp_path_factory.mktemp("flow")
     index = out / "change_index.sqlite"
@@ -68,7 +68,7 @@ def test_the_flow_ingests_detects_and_publishes(small_city, flow_run):
             limit=200,
         )
     names = sorted(r.name for r in runs)
-    per_segment = [r for r in runs if r.name.startswith("segment ")]
+    per_segment = [r for r in runs if r.name.startswith("publish-segment ")]
     # Prefect sees the ingest, the plan and one task run per segment: never one per image.
     assert len(runs) == 2 + n_segments, names
     assert len(per_segment) == n_segments < n
@@ -179,7 +179,7 @@ def test_infra_files_parse_and_agree():
     (nightly,) = deploy["deployments"]
     path, func = nightly["entrypoint"].split(":")
     assert (ROOT / path).exists() and f"def {func}(" in (ROOT / path).read_text()
-    from flows.nightly import nightly as flow
+    from streetcd_flows.nightly import nightly as flow
 
     params = set(flow.parameters.properties)
     assert set(nightly["parameters"]) <= params
@@ -189,7 +189,7 @@ def test_infra_files_parse_and_agree():
 
     import dask
 
-    from streetcd.pipeline import QUIET_DASK, WORKER_MALLOC_ENV
+    from streetcd.run.cluster import QUIET_DASK, WORKER_MALLOC_ENV
 
     dask_yaml = yaml.safe_load((ROOT / "infra" / "dask.yaml").read_text())
     assert dask_yaml["distributed"]["nanny"]["pre-spawn-environ"] == WORKER_MALLOC_ENV
@@ -229,7 +229,7 @@ def test_cli_run_on_an_index_in_use_fails_at_once_naming_the_holder(
     from click.testing import CliRunner
 
     from streetcd.cli.run import run
-    from streetcd.index import run_lock
+    from streetcd.store.locks import run_lock
 
     index = tmp_path / "change_index.sqlite"
     args = ["--images", str(small_city.images), "--poses", str(small_city.poses)]

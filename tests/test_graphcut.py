@@ -6,7 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from streetcd.graphcut import (
+from streetcd.config import GraphCutParams
+from streetcd.detect.graphcut import (
     adjacency,
     cut_changes,
     min_cut,
@@ -16,7 +17,6 @@ from streetcd.graphcut import (
     speckle_min_px,
     superpixels,
 )
-from streetcd.params import GraphCutParams
 
 
 def test_node_energy_is_a_monotone_s_curve_from_0_to_1():
@@ -197,7 +197,7 @@ def test_speckle_on_superpixels_equals_the_pixel_speckle_filter(seed):
     """Guards the superpixel-level speckle filter of cut_changes: on random superpixels
     (4-connected, as superpixels() makes them) and a random set of changed ones, touching
     at corners too, it gives exactly speckle_filter(changed[labels])."""
-    from streetcd.graphcut import _speckle_superpixels
+    from streetcd.detect.graphcut import _speckle_superpixels
 
     rng = np.random.default_rng(seed)
     h, w = 90, 130

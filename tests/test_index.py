@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError
-from streetcd.index import ChangeIndex, RegionRecord, ViewRecord, canonical_dump
-from streetcd.segments import Segment
+from streetcd.run.segments import Segment
+from streetcd.store.index import ChangeIndex, canonical_dump
+from streetcd.store.records import RegionRecord, ViewRecord
 
 E0, N0 = 372_000.0, 143_000.0
 
@@ -197,7 +198,7 @@ def test_opening_what_is_not_an_index_says_so(tmp_path):
 
 HOLD_LOCK = """
 import sys, time
-from streetcd.index import run_lock
+from streetcd.store.locks import run_lock
 with run_lock(sys.argv[1], "the holder of this test"):
     print("locked", flush=True)
     time.sleep(120)
@@ -211,7 +212,8 @@ def test_a_second_run_fails_fast_naming_the_holder_and_a_killed_holder_leaves_no
     import subprocess
     import sys
 
-    from streetcd.index import IndexBusyError, lock_path, run_lock
+    from streetcd.errors import IndexBusyError
+    from streetcd.store.locks import lock_path, run_lock
 
     index = tmp_path / "change_index.sqlite"
     holder = subprocess.Popen(
@@ -236,7 +238,8 @@ def test_a_second_run_fails_fast_naming_the_holder_and_a_killed_holder_leaves_no
 
 
 def test_the_lock_also_keeps_out_a_second_run_of_the_same_process(tmp_path):
-    from streetcd.index import IndexBusyError, run_lock
+    from streetcd.errors import IndexBusyError
+    from streetcd.store.locks import run_lock
 
     index = tmp_path / "change_index.sqlite"
     with run_lock(index, "first"):

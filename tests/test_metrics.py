@@ -8,7 +8,7 @@ import pytest
 
 from streetcd import classes
 from streetcd.errors import InputError
-from streetcd.metrics import (
+from streetcd.eval.metrics import (
     PixelCounts,
     TypeRow,
     false_components,

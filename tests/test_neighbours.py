@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from streetcd.camera import Intrinsics, Pose, look_at
-from streetcd.neighbours import overlap, select_neighbours
-from streetcd.views import View
+from streetcd.geometry.camera import look_at
+from streetcd.geometry.neighbours import overlap, select_neighbours
+from streetcd.types import Intrinsics, Pose, View
 
 INTR = Intrinsics(400, 300, 350.0, 350.0, 199.5, 149.5)
 ORIGIN = np.array([350000.0, 5600000.0, 300.0])  # CRS-sized coordinates
@@ -64,7 +64,7 @@ def test_at_most_n_are_returned(n):
 def test_overlaps_in_one_batch_equal_overlap_pair_by_pair():
     from dataclasses import replace
 
-    from streetcd.neighbours import overlaps
+    from streetcd.geometry.neighbours import overlaps
 
     views = strip(6, 3.0) + [view("back.jpg", 4.0, heading=-1.0), view("side.jpg", 5.0, y=8.0)]
     bent = Intrinsics(640, 360, 420.0, 430.0, 319.5, 179.5, (-0.2, 0.05, 0.001, -0.002, 0.0))

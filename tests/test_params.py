@@ -4,16 +4,22 @@ import dataclasses
 
 import pytest
 
-from streetcd.errors import InputError
-from streetcd.params import (
+from streetcd.config import (
+    Config,
+    CorrelateParams,
     DetectParams,
     GraphCutParams,
+    RunParams,
+    SegmentParams,
     ZBufferParams,
-    load_params,
+    config_from_dict,
+    config_to_dict,
+    load_config,
     params_from_dict,
     params_to_dict,
     scale_px,
 )
+from streetcd.errors import InputError
 
 
 def test_paper_defaults():
@@ -62,7 +68,46 @@ def test_default_yaml_is_the_paper_defaults(tmp_path):
     default = Path(__file__).parents[1] / "configs" / "default.yaml"
     if not default.exists():
         pytest.fail(f"{default} is missing")
-    assert load_params(default) == DetectParams()
+    assert load_config(default).detect == DetectParams()
+    assert load_config(None) == Config()
+
+
+def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
+    path = tmp_path / "night.yaml"
+    path.write_text(
+        "detect:\n  correlate:\n    n_neighbours: 2\n"
+        "run:\n  batch_size: 8\n  min_region_fraction: 0.01\n  segments:\n    max_gap_m: 12.5\n"
+    )
+    config = load_config(path)
+    assert config.detect.correlate.n_neighbours == 2
+    assert (config.run.batch_size, config.run.min_region_fraction) == (8, 0.01)
+    assert config.run.segments == SegmentParams(max_gap_m=12.5)
+    assert config_from_dict(config_to_dict(config)) == config
+    with pytest.raises(InputError, match="unknown block"):
+        config_from_dict({"detect": {}, "pipeline": {}})
+    with pytest.raises(InputError, match=r"run: unknown parameter\(s\) batchsize"):
+        config_from_dict({"run": {"batchsize": 2}})
+    with pytest.raises(InputError, match="run.batch_size = 0"):
+        RunParams(batch_size=0)
+    with pytest.raises(InputError, match="config file not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_the_results_hash_covers_exactly_what_changes_results():
+    base = Config()
+    # the layout of the hashes indexes already hold: a default index is not re-detected
+    assert base.results_hash() == "c4cd6144c1e8798e"
+    # speed only: the same results
+    assert base.replace_run(batch_size=9, workers=5).results_hash() == base.results_hash()
+    changed = [
+        Config(DetectParams(correlate=CorrelateParams(n_neighbours=2))),
+        base.replace_run(min_region_fraction=0.01),
+        base.replace_run(write_overlays=False),
+        base.replace_run(segments=SegmentParams(max_gap_m=10.0)),
+        Config(DetectParams(graphcut=GraphCutParams(beta=2.0))),
+    ]
+    hashes = {c.results_hash() for c in changed}
+    assert len(hashes) == len(changed) and base.results_hash() not in hashes
 
 
 def test_scale_px():

@@ -15,16 +15,39 @@ import cv2
 import numpy as np
 import pytest
 
-from streetcd import pipeline
-from streetcd.index import ChangeIndex, canonical_dump
+from streetcd.config import Config, RunParams
+from streetcd.io.images import capture_time, read_rgb
+from streetcd.io.outputs import tint_red
 from streetcd.io.poses import read_poses
+from streetcd.run.cluster import WORKER_MALLOC_ENV, dask_client
+from streetcd.run.dispatch import Dispatcher
+from streetcd.run.night import NightInputs, run_night
+from streetcd.run.plan import plan_run
+from streetcd.run.progress import progress_listener
+from streetcd.run.publish import finish_run, new_summary, open_index, publish_segment, register_plan
+from streetcd.run.worker import WorkerRuntime, cloud_key, detect_batch, is_flagged
+from streetcd.store.index import ChangeIndex, canonical_dump
 
-PARAMS = pipeline.PipelineParams(batch_size=2)
+PARAMS = Config(run=RunParams(batch_size=2))
+
+
+def night(client, images, poses, store, index, out, config: Config = Config()):
+    """The one orchestration (the CLI's and the flow's), on the tests' own cluster."""
+    inputs = NightInputs(str(images), str(poses), str(store), str(index), str(out))
+    return run_night(inputs, config, client=client)
+
+
+def planned(images, poses, store, index, out, config: Config = PARAMS):
+    """A plan recorded in the index, for the tests that dispatch and publish it by hand."""
+    open_index(str(index))
+    plan = plan_run(images, poses, store, index, out, config)
+    register_plan(plan)
+    return plan
 
 
 @pytest.fixture(scope="module")
 def cluster():
-    with pipeline.dask_client(workers=2) as client:
+    with dask_client(workers=2) as client:
         yield client
 
 
@@ -33,7 +56,7 @@ def clean_run(small_city, cluster, tmp_path_factory):
     """One uninterrupted run: (summary, index path, out folder)."""
     out = tmp_path_factory.mktemp("clean")
     index = out / "change_index.sqlite"
-    summary = pipeline.run_pipeline(
+    summary = night(
         cluster, small_city.images, small_city.poses, small_city.store, index, out, PARAMS
     )
     return summary, index, out
@@ -42,11 +65,11 @@ def clean_run(small_city, cluster, tmp_path_factory):
 def test_local_workers_keep_their_memory_between_views(cluster):
     # Dask's default (MALLOC_TRIM_THRESHOLD_=65536) costs ~80 ms of page faults per 2 MP view.
     def malloc_env() -> dict[str, str | None]:
-        return {k: os.environ.get(k) for k in pipeline.WORKER_MALLOC_ENV}
+        return {k: os.environ.get(k) for k in WORKER_MALLOC_ENV}
 
     seen = cluster.run(malloc_env)
     assert len(seen) == 2
-    assert all(env == pipeline.WORKER_MALLOC_ENV for env in seen.values()), seen
+    assert all(env == WORKER_MALLOC_ENV for env in seen.values()), seen
 
 
 def test_every_view_is_processed_and_only_flagged_ones_listed(small_city, clean_run):
@@ -73,38 +96,35 @@ def test_every_view_is_processed_and_only_flagged_ones_listed(small_city, clean_
 def test_a_rerun_detects_nothing_and_changes_nothing(small_city, cluster, clean_run):
     _, index, out = clean_run
     before = canonical_dump(index)
-    again = pipeline.run_pipeline(
+    again = night(
         cluster, small_city.images, small_city.poses, small_city.store, index, out, PARAMS
     )
     assert again.n_done == 0 and again.n_skipped == again.n_views
     assert canonical_dump(index) == before
-    other = pipeline.PipelineParams(batch_size=2, min_changed_fraction=0.5)
-    plan = pipeline.plan_run(
-        small_city.images, small_city.poses, small_city.store, index, out, other
-    )
+    other = Config(run=RunParams(batch_size=2, min_changed_fraction=0.5))
+    plan = plan_run(small_city.images, small_city.poses, small_city.store, index, out, other)
     assert plan.n_todo == plan.n_views  # other parameters: everything is due again
 
 
 def test_a_view_is_flagged_by_its_largest_region_not_by_scattered_specks():
-    params = pipeline.PipelineParams(min_region_fraction=0.002)
+    params = RunParams(min_region_fraction=0.002)
     n = 1920 * 1080  # 0.2 % = 4147.2 px
     specks = [300] * 40  # 12,000 px changed, none of it one object
-    assert not pipeline.is_flagged(sum(specks) / n, specks, n, params)
-    assert not pipeline.is_flagged(4147 / n, [4147], n, params)
-    assert pipeline.is_flagged(4148 / n, [4148], n, params)
-    assert pipeline.is_flagged(0.01, [4148, *specks], n, params)
-    assert not pipeline.is_flagged(0.0, [], n, params)
+    assert not is_flagged(sum(specks) / n, specks, n, params)
+    assert not is_flagged(4147 / n, [4147], n, params)
+    assert is_flagged(4148 / n, [4148], n, params)
+    assert is_flagged(0.01, [4148, *specks], n, params)
+    assert not is_flagged(0.0, [], n, params)
     # min_region_fraction 0: any changed pixel flags the view (the old rule)
-    assert pipeline.is_flagged(1 / n, [1], n, pipeline.PipelineParams(min_region_fraction=0.0))
+    assert is_flagged(1 / n, [1], n, RunParams(min_region_fraction=0.0))
     # both rules hold: more than min_changed_fraction changed as well
-    strict = pipeline.PipelineParams(min_changed_fraction=0.01, min_region_fraction=0.002)
-    assert not pipeline.is_flagged(5000 / n, [5000], n, strict)
+    strict = RunParams(min_changed_fraction=0.01, min_region_fraction=0.002)
+    assert not is_flagged(5000 / n, [5000], n, strict)
 
 
 def test_read_rgb_refuses_a_cut_jpeg_and_a_wrong_size_naming_the_file(tmp_path):
-    from streetcd.camera import Intrinsics, Pose
     from streetcd.errors import CorruptFileError, InputError
-    from streetcd.views import View
+    from streetcd.types import Intrinsics, Pose, View
 
     rgb = np.random.default_rng(3).integers(0, 256, (60, 80, 3), dtype=np.uint8)
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -112,14 +132,14 @@ def test_read_rgb_refuses_a_cut_jpeg_and_a_wrong_size_naming_the_file(tmp_path):
     good, cut = tmp_path / "v.jpg", tmp_path / "cut.jpg"
     good.write_bytes(buf.tobytes())
     cut.write_bytes(buf.tobytes()[: len(buf) * 2 // 3])  # scan data left, no end marker
-    image = pipeline.read_rgb(good, view)
+    image = read_rgb(good, view)
     want = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     assert np.array_equal(image, want) and not image.flags.writeable
     with pytest.raises(CorruptFileError, match=f"{cut}: truncated JPEG"):
-        pipeline.read_rgb(cut, view)
+        read_rgb(cut, view)
     small = View("v.jpg", Intrinsics(40, 30, 35.0, 35.0, 20.0, 15.0), view.pose)
     with pytest.raises(InputError, match="image is 80x60 but the pose of 'v.jpg' says 40x30"):
-        pipeline.read_rgb(good, small)
+        read_rgb(good, small)
 
 
 def test_the_overlay_tint_is_half_way_to_red_exactly():
@@ -130,17 +150,17 @@ def test_the_overlay_tint_is_half_way_to_red_exactly():
     mask[0, :3] = True
     want = image.copy()  # the overlay's definition: 0.5 v + 0.5 red, truncated
     want[mask] = (0.5 * want[mask] + 0.5 * np.array([255, 0, 0])).astype(np.uint8)
-    got = pipeline._tint_red(image.copy(), mask)
+    got = tint_red(image.copy(), mask)
     assert np.array_equal(got, want)
     bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    pipeline._tint_red(bgr, mask, channel=2)
+    tint_red(bgr, mask, channel=2)
     assert np.array_equal(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), want)
-    assert np.array_equal(pipeline._tint_red(image.copy(), np.zeros_like(mask)), image)
+    assert np.array_equal(tint_red(image.copy(), np.zeros_like(mask)), image)
     inner = np.zeros_like(mask)  # a mask away from the borders: only its box is tinted
     inner[5:12, 10:31] = mask[5:12, 10:31]
     want = image.copy()
     want[inner] = (0.5 * want[inner] + 0.5 * np.array([255, 0, 0])).astype(np.uint8)
-    assert np.array_equal(pipeline._tint_red(image.copy(), inner), want)
+    assert np.array_equal(tint_red(image.copy(), inner), want)
 
 
 def test_a_worker_without_a_share_takes_views_from_the_back_and_the_index_is_the_same(
@@ -151,25 +171,23 @@ def test_a_worker_without_a_share_takes_views_from_the_back_and_the_index_is_the
     the owner runs its batches in plan order, and the index equals a clean run's."""
     from distributed import get_task_stream
 
-    from streetcd.dispatch import Dispatcher
-
     index = tmp_path / "change_index.sqlite"
-    plan = pipeline.plan_run(
+    plan = planned(
         small_city.images,
         small_city.poses,
         small_city.store,
         index,
         tmp_path,
-        pipeline.PipelineParams(batch_size=1),
+        Config(run=RunParams(batch_size=1)),
     )
     owner, other = sorted(cluster.nthreads())
-    dispatcher = Dispatcher(cluster, plan, shares={owner: plan.batches}, tail_views=0)
+    dispatcher = Dispatcher(cluster, plan, detect_batch, shares={owner: plan.batches}, tail_views=0)
     with get_task_stream(cluster) as stream:
         dispatcher.start()
-        summary = pipeline.new_summary(plan)
+        summary = new_summary(plan)
         for s in plan.segments_todo:
-            summary.merge(pipeline.publish_segment(plan, dispatcher.finished(s)))
-    pipeline.finish_run(plan, summary)
+            summary.merge(publish_segment(plan, dispatcher.finished(s)))
+    finish_run(plan, summary)
     order = {b.key: k for k, b in enumerate(plan.batches)}
     ran: dict[str, list[int]] = {owner: [], other: []}
     for t in sorted(stream.data, key=lambda t: t["startstops"][0]["start"]):
@@ -188,23 +206,19 @@ def test_a_run_started_before_any_worker_is_done_by_the_workers_that_join(
     and the worker that joins runs it and then the whole queue."""
     from distributed import Client, LocalCluster
 
-    from streetcd.dispatch import Dispatcher
-
     index = tmp_path / "change_index.sqlite"
     with (
         LocalCluster(n_workers=0, threads_per_worker=1, dashboard_address=":0") as local,
         Client(local, set_as_default=False) as client,
     ):
-        plan = pipeline.plan_run(
-            small_city.images, small_city.poses, small_city.store, index, tmp_path, PARAMS
-        )
-        dispatcher = Dispatcher(client, plan).start()
+        plan = planned(small_city.images, small_city.poses, small_city.store, index, tmp_path)
+        dispatcher = Dispatcher(client, plan, detect_batch).start()
         assert dispatcher.running == {None: 1} and not client.nthreads()
         local.scale(1)
-        summary = pipeline.new_summary(plan)
+        summary = new_summary(plan)
         for s in plan.segments_todo:
-            summary.merge(pipeline.publish_segment(plan, dispatcher.finished(s)))
-        pipeline.finish_run(plan, summary)
+            summary.merge(publish_segment(plan, dispatcher.finished(s)))
+        finish_run(plan, summary)
     assert summary.n_done == plan.n_views and summary.n_failed == 0
     assert canonical_dump(index) == canonical_dump(clean_run[1])
 
@@ -219,24 +233,24 @@ def test_working_ahead_changes_no_result(small_city, tmp_path):
     runs = []
     for ahead in (False, True):
         out = tmp_path / f"ahead-{ahead}"
-        plan = pipeline.plan_run(
+        plan = plan_run(
             small_city.images, small_city.poses, small_city.store, out / "index.sqlite", out, PARAMS
         )
         assert len(plan.segments_todo) >= 2
-        pipeline._images.clear()
-        pipeline._clouds.clear()
+        runtime = WorkerRuntime()  # a fresh worker's
         records = []
         for k, b in enumerate(plan.batches):
             nxt = plan.batches[k + 1] if ahead and k + 1 < len(plan.batches) else None
             later = [c for c in plan.batches[k:] if c.segment_id != b.segment_id]
             next_segment = later[0] if ahead and later else None
-            records += pipeline.detect_batch(b, nxt, next_segment)
+            records += runtime.detect_batch(b, nxt, next_segment)
             if next_segment is not None:
-                entry, mine = pipeline._clouds.claim(pipeline._cloud_key(next_segment))
+                entry, mine = runtime.clouds.claim(cloud_key(next_segment))
                 # started ahead by this batch (done or not: a short batch can finish before
                 # the crop thread does, and nothing waits for it until that segment's turn)
                 assert not mine
                 entry.result(timeout=120)
+        runtime.close()
         timeless = [
             replace(
                 r,
@@ -255,7 +269,7 @@ def test_working_ahead_changes_no_result(small_city, tmp_path):
 
 
 def test_a_mask_that_cannot_be_written_fails_its_view_and_is_not_listed(small_city, tmp_path):
-    plan = pipeline.plan_run(
+    plan = plan_run(
         small_city.images,
         small_city.poses,
         small_city.store,
@@ -264,7 +278,9 @@ def test_a_mask_that_cannot_be_written_fails_its_view_and_is_not_listed(small_ci
         PARAMS,
     )
     (tmp_path / "masks").write_text("a file where the masks folder goes")
-    records = [r for b in plan.batches for r in pipeline.detect_batch(b)]
+    runtime = WorkerRuntime()
+    records = [r for b in plan.batches for r in runtime.detect_batch(b)]
+    runtime.close()
     failed = [r for r in records if r.status == "failed"]
     assert failed, "the city has changes: some view must have had a mask to write"
     for r in failed:
@@ -293,9 +309,7 @@ def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_p
     poses = tmp_path / "poses.csv"
     poses.write_text("\n".join(lines) + "\n")
     index = tmp_path / "change_index.sqlite"
-    summary = pipeline.run_pipeline(
-        cluster, images, poses, small_city.store, index, tmp_path, PARAMS
-    )
+    summary = night(cluster, images, poses, small_city.store, index, tmp_path, PARAMS)
     errors = dict(summary.failures)
     assert set(errors) == {corrupt, lifted, unposed, malformed, twice}
     assert corrupt in errors[corrupt] and "CorruptFileError" in errors[corrupt]
@@ -309,25 +323,24 @@ def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_p
     with ChangeIndex(index, create=False) as idx:
         assert dict(idx.failures()) == errors
         assert idx.conn.execute("SELECT status FROM runs").fetchone()[0] == "finished"
-    again = pipeline.plan_run(images, poses, small_city.store, index, tmp_path, PARAMS)
+    again = plan_run(images, poses, small_city.store, index, tmp_path, PARAMS)
     assert again.n_todo == 0 and again.n_skipped == len(names)  # failures are not retried
 
     # Fixing the row makes that view, and only it, due again.
     poses.write_text(poses.read_text().replace("north-ish", "0.0"))
-    fixed = pipeline.plan_run(images, poses, small_city.store, index, tmp_path, PARAMS)
+    fixed = plan_run(images, poses, small_city.store, index, tmp_path, PARAMS)
     assert [t.view.name for b in fixed.batches for t in b.tasks] == [malformed]
 
 
 def test_a_run_on_a_locked_index_fails_fast_and_changes_nothing(small_city, cluster, tmp_path):
-    from streetcd.index import IndexBusyError, run_lock
+    from streetcd.errors import IndexBusyError
+    from streetcd.store.locks import run_lock
 
     index = tmp_path / "change_index.sqlite"
     with run_lock(index, "a run that is still going"):
         t0 = time.perf_counter()
         with pytest.raises(IndexBusyError, match="a run that is still going, process"):
-            pipeline.run_pipeline(
-                cluster, small_city.images, small_city.poses, small_city.store, index, tmp_path
-            )
+            night(cluster, small_city.images, small_city.poses, small_city.store, index, tmp_path)
         assert time.perf_counter() - t0 < 5
     assert not index.exists()
 
@@ -345,10 +358,10 @@ def test_the_capture_time_comes_from_exif_in_utc(tmp_path):
     image.save(tmp_path / "utc.jpg", exif=exif)
     image.save(tmp_path / "none.jpg")
     (tmp_path / "junk.jpg").write_bytes(b"not a jpeg")
-    assert pipeline.capture_time(tmp_path / "zoned.jpg") == "2026-11-21T21:30:00Z"
-    assert pipeline.capture_time(tmp_path / "utc.jpg") == "2026-11-21T23:30:00Z"
-    assert pipeline.capture_time(tmp_path / "none.jpg") is None
-    assert pipeline.capture_time(tmp_path / "junk.jpg") is None
+    assert capture_time(tmp_path / "zoned.jpg") == "2026-11-21T21:30:00Z"
+    assert capture_time(tmp_path / "utc.jpg") == "2026-11-21T23:30:00Z"
+    assert capture_time(tmp_path / "none.jpg") is None
+    assert capture_time(tmp_path / "junk.jpg") is None
 
 
 def _start(cmd: list[str], log: Path) -> subprocess.Popen:
@@ -425,8 +438,8 @@ def test_losing_a_worker_mid_run_gives_the_same_index(small_city, clean_run, tmp
                     killed.append(time.monotonic())
 
             index = tmp_path / "change_index.sqlite"
-            with pipeline.progress_listener(kill_after_first_batch):
-                summary = pipeline.run_pipeline(
+            with progress_listener(kill_after_first_batch):
+                summary = night(
                     client,
                     small_city.images,
                     small_city.poses,
@@ -446,7 +459,8 @@ def test_losing_a_worker_mid_run_gives_the_same_index(small_city, clean_run, tmp
 
 def test_new_mls_data_redoes_only_the_views_it_can_reach(small_city, clean_run, tmp_path):
     from streetcd.io.las import write_las
-    from streetcd.tiles import TileStore, ingest
+    from streetcd.store.ingest import ingest
+    from streetcd.store.tiles import TileStore
 
     store = tmp_path / "store.zarr"
     shutil.copytree(small_city.store, store)
@@ -465,6 +479,6 @@ def test_new_mls_data_redoes_only_the_views_it_can_reach(small_city, clean_run, 
         crs=TileStore.open(small_city.store).crs,
     )
     assert ingest(new, store).ok
-    plan = pipeline.plan_run(small_city.images, small_city.poses, store, index, tmp_path, PARAMS)
+    plan = plan_run(small_city.images, small_city.poses, store, index, tmp_path, PARAMS)
     todo = sorted(t.view.name for b in plan.batches for t in b.tasks)
     assert todo == near and plan.n_skipped == len(views) - len(near)

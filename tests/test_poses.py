@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from streetcd.camera import Intrinsics, look_at
 from streetcd.errors import InputError, MissingInputError
+from streetcd.geometry.camera import look_at
 from streetcd.io.poses import (
     read_colmap_binary,
     read_colmap_text,
@@ -16,7 +16,7 @@ from streetcd.io.poses import (
     write_colmap_text,
     write_opk_csv,
 )
-from streetcd.views import View
+from streetcd.types import Intrinsics, View
 
 CRS = "EPSG:32648"
 

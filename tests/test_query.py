@@ -11,8 +11,9 @@ from test_segments import E0, N0, street
 
 from streetcd.cli.query import query as query_cmd
 from streetcd.errors import InputError
-from streetcd.index import ChangeIndex, RegionRecord, ViewRecord
-from streetcd.segments import SegmentParams, plan_segments
+from streetcd.run.segments import SegmentParams, plan_segments
+from streetcd.store.index import ChangeIndex
+from streetcd.store.records import RegionRecord, ViewRecord
 
 CRS = "EPSG:32648"
 DATES = ["2026-11-01T02:00:00Z", "2026-11-10T03:30:00Z", "2026-11-20T01:15:00Z"]

@@ -1,4 +1,4 @@
-"""Pixel outlines by colour (streetcd.refine) on small exact scenes."""
+"""Pixel outlines by colour (streetcd.detect.refine) on small exact scenes."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from streetcd.params import REFERENCE_WIDTH_PX, RefineParams
-from streetcd.refine import refine_outline
+from streetcd.config import REFERENCE_WIDTH_PX, RefineParams
+from streetcd.detect.refine import refine_outline
 
 W, H = 400, 300
 PARAMS = RefineParams(band_px=12 * REFERENCE_WIDTH_PX / W)  # 12 px at 400 px wide

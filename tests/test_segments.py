@@ -3,17 +3,17 @@
 import numpy as np
 import pytest
 
-from streetcd.camera import Intrinsics, look_at
+from streetcd.config import Config, CorrelateParams, DetectParams, RunParams, SegmentParams
 from streetcd.errors import InputError
-from streetcd.segments import (
+from streetcd.geometry.camera import look_at
+from streetcd.run.segments import (
     Segment,
-    SegmentParams,
     cut_points,
     order_views,
     path_order,
     plan_segments,
 )
-from streetcd.views import View
+from streetcd.types import Intrinsics, View
 
 E0, N0 = 372_000.0, 143_000.0  # UTM-sized coordinates, as real poses have
 INTR = Intrinsics(640, 360, 400.0, 400.0, 319.5, 179.5)
@@ -119,7 +119,7 @@ def test_ids_are_stable_and_follow_content():
 
 def test_neighbours_are_the_overlapping_views_and_cross_segment_ends():
     views = street(12, step_m=4.0)
-    segments = plan_segments(views, SegmentParams(length_m=20.0, n_neighbours=2))
+    segments = plan_segments(views, SegmentParams(length_m=20.0), n_neighbours=2)
     by_name = {v.name: v for v in views}
     for seg in segments:
         assert len(seg.neighbours) == len(seg.views)
@@ -142,7 +142,7 @@ def test_duplicate_names_and_bad_parameters_are_refused():
     with pytest.raises(InputError, match="length_m"):
         SegmentParams(length_m=0.0)
     with pytest.raises(InputError, match="n_neighbours"):
-        SegmentParams(n_neighbours=0)
+        CorrelateParams(n_neighbours=0)
 
 
 def test_no_views_no_segments():
@@ -152,9 +152,10 @@ def test_no_views_no_segments():
 
 def test_dense_acquisitions_rank_only_the_nearest_candidates():
     views = street(40, step_m=0.5)  # a camera every half metre: 40 within the radius
-    (seg,) = plan_segments(views, SegmentParams(n_neighbours=3, max_candidates=4))
+    (seg,) = plan_segments(views, SegmentParams(max_candidates=4), n_neighbours=3)
     for name, nbrs in zip(seg.views, seg.neighbours, strict=True):
         i = int(name[2:5])
         assert len(nbrs) == 3 and all(abs(int(n[2:5]) - i) <= 4 for n in nbrs)
+    three = DetectParams(correlate=CorrelateParams(n_neighbours=3))
     with pytest.raises(InputError, match="max_candidates"):
-        SegmentParams(n_neighbours=3, max_candidates=2)
+        Config(three, RunParams(segments=SegmentParams(max_candidates=2)))

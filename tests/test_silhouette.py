@@ -1,8 +1,8 @@
-"""The near-depth hypothesis next to near objects (streetcd.silhouette)."""
+"""The near-depth hypothesis next to near objects (streetcd.detect.silhouette)."""
 
 import numpy as np
 
-from streetcd.silhouette import WORK_STEP_PX, near_depth_hypothesis
+from streetcd.detect.silhouette import WORK_STEP_PX, near_depth_hypothesis
 
 
 def wall_with_a_pole(pole_depth: float = 2.0) -> np.ndarray:

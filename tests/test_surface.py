@@ -8,11 +8,12 @@ from scipy.ndimage import binary_erosion
 from scipy.spatial import ConvexHull, Delaunay
 
 from streetcd import classes as cls
-from streetcd.camera import Intrinsics, look_at, pixel_grid, project
+from streetcd.config import REFERENCE_WIDTH_PX, DetectParams, SurfaceParams, ZBufferParams
+from streetcd.detect.surface import surface_for_view, triangulate, view_surface
+from streetcd.detect.zbuffer import block_zbuffer, project_cloud
 from streetcd.errors import EmptyViewError, InputError
-from streetcd.params import REFERENCE_WIDTH_PX, DetectParams, SurfaceParams, ZBufferParams
-from streetcd.surface import surface_for_view, triangulate, view_surface
-from streetcd.zbuffer import block_zbuffer, project_cloud
+from streetcd.geometry.camera import look_at, pixel_grid, project
+from streetcd.types import Intrinsics
 
 W, H, F = 320, 240, 300.0
 INTR = Intrinsics(W, H, F, F, (W - 1) / 2, (H - 1) / 2)

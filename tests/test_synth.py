@@ -13,10 +13,10 @@ import pytest
 from click.testing import CliRunner
 
 from streetcd import classes
-from streetcd.camera import in_image, project
 from streetcd.cli.main import cli
 from streetcd.errors import InputError
-from streetcd.io.las import PointCloud, read_las
+from streetcd.geometry.camera import in_image, project
+from streetcd.io.las import read_las
 from streetcd.io.poses import read_opk_csv, read_poses
 from streetcd.synth import (
     EPOCH1,
@@ -28,6 +28,7 @@ from streetcd.synth import (
     render_depth,
 )
 from streetcd.synth.raycast import BOX, CYL, ELL, build_grid, cast
+from streetcd.types import PointCloud
 
 SMALL = dict(n_images=6, size=(320, 180), length_m=40.0)
 

@@ -1,4 +1,4 @@
-"""Tile store ingest and reading (streetcd.tiles, streetcd ingest / tiles commands)."""
+"""Tile store ingest and reading (streetcd.store.tiles, streetcd ingest / tiles commands)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from streetcd import tiles
 from streetcd.cli.ingest import ingest as ingest_cmd
 from streetcd.cli.ingest import tiles as tiles_cmd
 from streetcd.errors import (
@@ -23,17 +22,15 @@ from streetcd.errors import (
     InputError,
     MissingInputError,
     OptionalDependencyError,
-)
-from streetcd.io.las import PointCloud, read_las, write_las
-from streetcd.tiles import (
-    TILE_CACHE,
     StoreLockedError,
-    TileCache,
-    TileStore,
-    find_archive_files,
-    get_reader,
-    ingest,
 )
+from streetcd.io.las import read_las, write_las
+from streetcd.io.readers import find_archive_files, get_reader
+from streetcd.store import ingest as store_ingest
+from streetcd.store import tiles as store_tiles
+from streetcd.store.ingest import ingest
+from streetcd.store.tiles import TileCache, TileStore, tile_cache
+from streetcd.types import PointCloud
 
 ORIGIN = np.array([634_000.0, 5_712_000.0, 40.0])  # CRS metres, 10⁵–10⁶ m
 TILE = 15.0
@@ -142,7 +139,7 @@ def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path, monk
     # guards read_tiles, which decompresses each chunk once for all the tiles it serves and
     # cuts their runs out of it; 500-row chunks, so that runs straddle chunk borders
     d, truth = archive
-    monkeypatch.setattr(tiles, "CHUNK_POINTS", 500)
+    monkeypatch.setattr(store_ingest, "CHUNK_POINTS", 500)
     ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000, workers=1)
     store = TileStore.open(tmp_path / "s.zarr")
     rows = store._source_arrays(0)["xyz"].chunks[0]
@@ -157,7 +154,7 @@ def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path, monk
             np.testing.assert_array_equal(getattr(together[tid], name), getattr(one, name))
     ids = np.concatenate([together[t].gps_time for t in tids])
     np.testing.assert_array_equal(np.sort(ids), np.sort(truth["ids"]))  # none lost or twice
-    TILE_CACHE.clear()
+    tile_cache().clear()
     cached = store.read_tiles(tids[:3])
     again = store.read_tiles(tids[:5])
     assert all(again[t] is cached[t] for t in tids[:3])  # served from the cache
@@ -270,7 +267,7 @@ class Crash(Exception):
 
 def test_crash_mid_file_then_resume_equals_clean_ingest(archive, tmp_path, monkeypatch):
     d, truth = archive
-    monkeypatch.setattr(tiles, "CHUNK_POINTS", 500)  # small chunks: half a file gets written
+    monkeypatch.setattr(store_ingest, "CHUNK_POINTS", 500)  # small chunks: half a file gets written
     calls = []
 
     def crash_in_third_file(done, total, name):
@@ -303,9 +300,9 @@ def test_killed_process_mid_file_then_resume_equals_clean_ingest(archive, tmp_pa
     d, _ = archive
     script = textwrap.dedent(f"""
         import os, signal
-        from streetcd import tiles
-        from streetcd.tiles import ingest
-        tiles.CHUNK_POINTS = 500  # small chunks: the file is half on disk when it dies
+        from streetcd.store import ingest as store_ingest
+        from streetcd.store.ingest import ingest
+        store_ingest.CHUNK_POINTS = 500  # small chunks: the file is half on disk when it dies
         n = 0
         def kill(done, total, name):
             global n
@@ -349,7 +346,7 @@ def test_second_ingest_into_a_locked_store_fails_at_once(archive, tmp_path):
     d, _ = archive
     store = tmp_path / "s.zarr"
     ingest(d / "strip_0.laz", store, tile_size_m=TILE)
-    with tiles._store_lock(store):  # what a running ingest holds
+    with store_ingest._store_lock(store):  # what a running ingest holds
         with pytest.raises(StoreLockedError, match="another ingest is writing"):
             ingest(d, store, tile_size_m=TILE)
     assert TileStore.open(store).point_count == 3000  # the refused run wrote nothing
@@ -509,6 +506,33 @@ def test_tile_cache_is_bounded_by_bytes():
     cache.get(("s", 1))  # touch 1: 2 is now the least recently used
     cache.put(("s", 4), cloud(100))
     assert cache.get(("s", 2)) is None and cache.get(("s", 1)) is not None
+
+
+@pytest.mark.parametrize("value", ["1GB", "-5", "nan", "inf", ""])
+def test_bad_tile_cache_size_is_one_input_error_at_first_use(monkeypatch, value):
+    # guards the lazy process-wide cache: a bad STREETCD_TILE_CACHE_MB was a bare ValueError
+    # at import of the store modules
+    monkeypatch.setenv("STREETCD_TILE_CACHE_MB", value)
+    monkeypatch.setattr(store_tiles, "_TILE_CACHE", None)  # this process's cache: not made yet
+    with pytest.raises(InputError) as err:
+        tile_cache()
+    message = str(err.value)
+    assert "\n" not in message
+    assert "STREETCD_TILE_CACHE_MB" in message and repr(value) in message
+
+
+def test_bad_tile_cache_size_does_not_break_import():
+    env = {**os.environ, "STREETCD_TILE_CACHE_MB": "1GB"}
+    script = "import streetcd.store.crop, streetcd.store.ingest, streetcd.store.tiles"
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr.decode()
+
+
+def test_tile_cache_is_made_once_with_the_size_asked_for(monkeypatch):
+    monkeypatch.setenv("STREETCD_TILE_CACHE_MB", "0.5")
+    monkeypatch.setattr(store_tiles, "_TILE_CACHE", None)
+    cache = tile_cache()
+    assert cache.max_bytes == 2**19 and tile_cache() is cache
 
 
 def test_pdal_missing_gives_one_clear_line(monkeypatch):

@@ -5,10 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from streetcd.camera import Intrinsics, look_at, project
-from streetcd.errors import InputError
-from streetcd.params import ZBufferParams
-from streetcd.zbuffer import (
+from streetcd.config import ZBufferParams
+from streetcd.detect.zbuffer import (
     _ERASED,
     CHUNK_POINTS,
     _box_outside,
@@ -19,6 +17,9 @@ from streetcd.zbuffer import (
     project_cloud,
     weighted_zbuffer,
 )
+from streetcd.errors import InputError
+from streetcd.geometry.camera import look_at, project
+from streetcd.types import Intrinsics
 
 W, H, F = 400, 300, 400.0
 INTR = Intrinsics(W, H, F, F, (W - 1) / 2, (H - 1) / 2)

@@ -1,7 +1,7 @@
 """``streetcd detect``: one view against the reference cloud, mask + overlay + JSON summary.
 
 streetcd detect --cloud FILE [FILE ...] --poses POSES --images DIR --view NAME
-                [--neighbours NAME,NAME] [--params YAML] --out DIR
+                [--neighbours NAME,NAME] [--config YAML] --out DIR
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from streetcd.errors import StreetcdError
 
 USAGE = (
     "--cloud FILE [FILE ...] --poses POSES --images DIR --view NAME "
-    "[--neighbours NAME,NAME] [--params YAML] --out DIR"
+    "[--neighbours NAME,NAME] [--config YAML] --out DIR"
 )
 
 
@@ -59,11 +59,12 @@ class _DetectCommand(click.Command):
     help="Comma-separated neighbour views; default: the best-overlapping ones.",
 )
 @click.option(
+    "--config",
     "--params",
     "params_path",
     default=None,
     type=click.Path(path_type=Path),
-    help="Parameter YAML (configs/default.yaml layout); default: the paper's values.",
+    help="Settings YAML (configs/default.yaml layout; its detect: block is used); default: the defaults.",
 )
 @click.option(
     "--out",
@@ -83,13 +84,15 @@ def detect(
     out_dir: Path,
 ) -> None:
     """Detect changes in one view: writes OUT/<stem>.mask.png, .overlay.jpg and .json."""
-    from streetcd.detect import detect_files, load_clouds, summary, write_outputs
+    from streetcd.config import load_config
+    from streetcd.io.las import load_clouds
+    from streetcd.io.outputs import summary, write_outputs
     from streetcd.io.poses import read_poses
-    from streetcd.params import load_params
+    from streetcd.run.single import detect_files
 
     t0 = time.perf_counter()
     try:
-        params = load_params(params_path)
+        params = load_config(params_path).detect
         pose_set = read_poses(poses, image_dir)
         cloud = load_clouds([*clouds, *more_clouds])
         t_load = time.perf_counter() - t0

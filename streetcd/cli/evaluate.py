@@ -90,10 +90,11 @@ def _write_json(path: Path | None, data: dict) -> None:
     help="Write the results as JSON here.",
 )
 @click.option(
+    "--config",
     "--params",
     "params_path",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Parameter YAML (default: streetcd.params defaults, = configs/default.yaml).",
+    help="Settings YAML (configs/default.yaml layout; its detect: block is used); default: the defaults.",
 )
 @click.option(
     "--views", "max_views", type=click.IntRange(min=1), help="Evaluate only the first N views."
@@ -128,13 +129,13 @@ def evaluate(
     paper's baselines, Table 2 per object type; or kappa against the registration error."""
     from rich.console import Console
 
-    from streetcd.params import load_params
+    from streetcd.config import load_config
 
     console = Console(stderr=False)
     if (scene is None) == (sweep is None):
         raise click.UsageError("give either --scene DIR or --sweep-pose-noise LEVELS")
     try:
-        params = load_params(params_path)
+        params = load_config(params_path).detect
         if sweep is not None:
             data = _run_sweep(console, sweep, seed, out_dir, params, max_views)
         else:
@@ -148,7 +149,7 @@ def evaluate(
 def _run_scene(
     console: Any, scene: Path, params: Any, max_views: int | None, baselines: bool
 ) -> dict:
-    from streetcd.evaluate import evaluate_scene, load_scene
+    from streetcd.eval.evaluate import evaluate_scene, load_scene
 
     n = len(load_scene(scene).views) if max_views is None else max_views
     progress = _progress(console)
@@ -173,7 +174,7 @@ def _run_sweep(
 ) -> dict:
     from rich.table import Table
 
-    from streetcd.evaluate import ensure_scene, evaluate_scene
+    from streetcd.eval.evaluate import sweep_pose_noise
 
     try:
         levels = [float(x) for x in sweep.split(",") if x.strip()]
@@ -181,24 +182,20 @@ def _run_sweep(
         raise click.BadParameter(
             f"{sweep!r} is not a comma-separated list of numbers", param_hint="--sweep-pose-noise"
         ) from None
-    rows: list[dict[str, Any]] = []
     progress = _progress(console)
     with progress:
         task = progress.add_task("pose-noise sweep", total=len(levels))
-        for level in levels:
-            progress.update(task, description=f"{level:g} px: generating")
-            root = ensure_scene(out_dir, seed=seed, pose_noise_px=level)
-            progress.update(task, description=f"{level:g} px: detecting")
-            rep = evaluate_scene(root, params, max_views=max_views, baselines=False)
-            rows.append(
-                {
-                    "pose_noise_px": level,
-                    **rep.overall.as_dict(),
-                    "seconds_per_view": rep.seconds_per_view,
-                    "scene": str(root),
-                }
-            )
-            progress.advance(task)
+
+        def step(level: float, stage: str) -> None:
+            if stage == "done":
+                progress.advance(task)
+            else:
+                progress.update(task, description=f"{level:g} px: {stage}")
+
+        points = sweep_pose_noise(
+            levels, out_dir, params, seed=seed, max_views=max_views, progress=step
+        )
+    rows = [p.as_dict() for p in points]
     t = Table(title=f"Kappa against registration error (seed {seed})")
     for col in ("pose noise (px)", "KC", "GDR (%)", "FDR (%)", "TP (%)", "FP (%)"):
         t.add_column(col, justify="right")

@@ -1,6 +1,6 @@
 """``streetcd ingest`` (an MLS archive into a zarr tile store) and ``streetcd tiles`` (its index).
 
-Thin over :mod:`streetcd.tiles`; the progress bar lives here. ``ingest`` exits with status 1
+Thin over :mod:`streetcd.store.tiles`; the progress bar lives here. ``ingest`` exits with status 1
 when any file failed (the good files are still ingested and the failures recorded).
 """
 
@@ -93,8 +93,8 @@ def ingest(
         TimeRemainingColumn,
     )
 
-    from streetcd.tiles import get_reader
-    from streetcd.tiles import ingest as run_ingest
+    from streetcd.io.readers import get_reader
+    from streetcd.store.ingest import ingest as run_ingest
 
     console = Console(stderr=True)
     try:
@@ -152,7 +152,7 @@ def ingest(
 @click.option("--json", "as_json", is_flag=True, help="Print the index as JSON.")
 def tiles(store: str, as_json: bool) -> None:
     """Print the tile index of STORE: bounds, point count, classes and sources per tile."""
-    from streetcd.tiles import TileStore
+    from streetcd.store.tiles import TileStore
 
     try:
         ts = TileStore.open(store)

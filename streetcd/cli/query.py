@@ -74,7 +74,8 @@ def run_query(
     detected_since: str | None = None,
 ) -> str:
     """The text ``streetcd query`` prints."""
-    from streetcd.index import ChangeIndex, to_geojson
+    from streetcd.store.geojson import to_geojson
+    from streetcd.store.index import ChangeIndex
 
     with ChangeIndex(index, create=False) as idx:
         rows = idx.query(

@@ -1,6 +1,7 @@
 """``streetcd run`` (the nightly flow once, with a progress bar) and ``streetcd demo``.
 
-Both run the Prefect flow in ``flows/nightly.py``. Without ``PREFECT_API_URL`` Prefect starts
+Both run the Prefect flow in ``flows/nightly.py`` (installed as ``streetcd_flows``), which runs
+:func:`streetcd.run.night.run_night` with Prefect's tracking. Without ``PREFECT_API_URL`` Prefect starts
 a temporary local server for the run (about 20 s). Prefect's own log lines are shown from
 level WARNING (failed views, failed files) unless ``--verbose``; the progress bar and the
 summary come from here.
@@ -8,6 +9,7 @@ summary come from here.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
@@ -36,10 +38,11 @@ def run_flow(*, verbose: bool = False, **kwargs: Any) -> dict[str, Any]:
     """Run ``flows.nightly.nightly(**kwargs)`` with a rich progress bar; returns its summary."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from streetcd import pipeline
+    from streetcd.run.progress import progress_listener
 
     quiet_prefect(verbose)
-    from flows.nightly import nightly
+    # after quiet_prefect: prefect reads its settings when it is first imported
+    from streetcd_flows.nightly import nightly
 
     with Progress(
         TextColumn("{task.description}"),
@@ -66,7 +69,7 @@ def run_flow(*, verbose: bool = False, **kwargs: Any) -> dict[str, Any]:
                 counts["failed"] += sum(r.status == "failed" for r in payload)
                 bar.update(job, advance=len(payload), **counts)
 
-        with pipeline.progress_listener(on_progress):
+        with progress_listener(on_progress):
             return nightly(**kwargs)
 
 
@@ -125,10 +128,8 @@ def _default(path: str | None, out: str, name: str) -> str:
 )
 @click.option(
     "--workers",
-    type=int,
-    default=2,
-    show_default=True,
-    help="Worker processes of the local cluster.",
+    type=click.IntRange(min=1),
+    help="Worker processes of the local cluster (overrides the config's run.workers, default 2).",
 )
 @click.option(
     "--out",
@@ -138,12 +139,17 @@ def _default(path: str | None, out: str, name: str) -> str:
     help="Folder for masks and overlays.",
 )
 @click.option(
+    "--config",
     "--params",
-    "params_file",
+    "config_file",
     type=click.Path(exists=True, dir_okay=False),
-    help="Detector parameters (YAML, configs/default.yaml layout).",
+    help="Settings (YAML, configs/default.yaml layout: detect: and run:). Default: the defaults.",
 )
-@click.option("--batch-size", type=int, default=4, show_default=True, help="Views per Dask task.")
+@click.option(
+    "--batch-size",
+    type=click.IntRange(min=1),
+    help="Views per Dask task (overrides the config's run.batch_size, default 4).",
+)
 @click.option("--retry-failed", is_flag=True, help="Process again views that failed before.")
 @click.option("-v", "--verbose", is_flag=True, help="Show Prefect's INFO logs.")
 def run(
@@ -153,10 +159,10 @@ def run(
     archive: str | None,
     index: str | None,
     scheduler: str | None,
-    workers: int,
+    workers: int | None,
     out: str,
-    params_file: str | None,
-    batch_size: int,
+    config_file: str | None,
+    batch_size: int | None,
     retry_failed: bool,
     verbose: bool,
 ) -> None:
@@ -172,7 +178,7 @@ def run(
             archive=archive,
             scheduler=scheduler,
             workers=workers,
-            params_file=params_file,
+            config_file=config_file,
             batch_size=batch_size,
             retry_failed=retry_failed,
             verbose=verbose,
@@ -233,8 +239,8 @@ def prepare_demo(
 ) -> dict[str, str]:
     """Generate the synthetic city under ``root/city`` and ingest its cloud into
     ``root/store.zarr``; return the flow's path arguments."""
+    from streetcd.store.ingest import ingest
     from streetcd.synth import generate_city
-    from streetcd.tiles import ingest
 
     t0 = time.perf_counter()
     city = root / "city"
@@ -267,8 +273,6 @@ def prepare_demo(
 def _same_city(manifest: Path, seed: int, streets: int, images_per_street: int) -> bool:
     """Whether ``manifest`` is a finished city made with these settings (reruns reuse it, and
     the flow then finds every view already in the index)."""
-    import json
-
     try:
         m = json.loads(manifest.read_text(encoding="utf-8"))
         g = m["generator"]

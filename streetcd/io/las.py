@@ -10,7 +10,7 @@ CRS as a WKT VLR (pyproj builds the WKT), scale 1 mm and an offset rounded to th
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
@@ -18,51 +18,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from streetcd.errors import CorruptFileError, InputError, MissingInputError
+from streetcd.errors import CorruptFileError, CRSMismatchError, InputError, MissingInputError
+from streetcd.types import PointCloud
 
 if TYPE_CHECKING:
     import laspy
-
-
-@dataclass(frozen=True)
-class PointCloud:
-    """Points in a local frame.
-
-    xyz : (N, 3) float64, metres, ``X_crs − origin``.
-    origin : (3,) float64, metres in the CRS.
-    classification : (N,) uint8, codes of :mod:`streetcd.classes`.
-    intensity : (N,) uint16 or None.
-    rgb : (N, 3) uint16 or None (LAS colours are 16-bit).
-    gps_time : (N,) float64 or None, seconds.
-    crs : the CRS as ``"EPSG:XXXX"`` when it has an EPSG code, else WKT, or None.
-    """
-
-    xyz: np.ndarray
-    origin: np.ndarray
-    classification: np.ndarray
-    intensity: np.ndarray | None = None
-    rgb: np.ndarray | None = None
-    gps_time: np.ndarray | None = None
-    crs: str | None = None
-
-    def __len__(self) -> int:
-        return int(self.xyz.shape[0])
-
-    def subset(self, mask: np.ndarray) -> PointCloud:
-        """The points where ``mask`` (N,) bool (or an index array) selects."""
-
-        def pick(a: np.ndarray | None) -> np.ndarray | None:
-            return None if a is None else a[mask]
-
-        return PointCloud(
-            self.xyz[mask],
-            self.origin,
-            self.classification[mask],
-            pick(self.intensity),
-            pick(self.rgb),
-            pick(self.gps_time),
-            self.crs,
-        )
 
 
 def crs_string(crs: object) -> str:
@@ -273,3 +233,31 @@ def iter_las_chunks(
         ) from None
     if seen != expected:
         raise CorruptFileError(f"{path}: truncated: header says {expected} points, read {seen}")
+
+
+def load_clouds(paths: Sequence[str | Path]) -> PointCloud:
+    """Read several LAS/LAZ files into one cloud in one local frame (the first file's offset).
+
+    Files have different header offsets, so every file is read relative to the same origin.
+    CRSMismatchError if two files state different CRSs.
+    """
+    if not paths:
+        raise MissingInputError("no point cloud file given")
+    first = read_las(paths[0])
+    clouds = [first] + [read_las(p, origin=first.origin) for p in paths[1:]]
+    crss = {c.crs for c in clouds if c.crs is not None}
+    if len(crss) > 1:
+        listed = ", ".join(f"{p}: {c.crs}" for p, c in zip(paths, clouds, strict=True))
+        raise CRSMismatchError(f"point cloud files have different CRSs ({listed})")
+    return PointCloud(
+        xyz=np.concatenate([c.xyz for c in clouds]),
+        origin=first.origin,
+        classification=np.concatenate([c.classification for c in clouds]),
+        # colours only when every file has them (the appearance check needs all or none)
+        rgb=(
+            np.concatenate([c.rgb for c in clouds])
+            if all(c.rgb is not None for c in clouds)
+            else None
+        ),
+        crs=next(iter(crss), None),
+    )

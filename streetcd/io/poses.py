@@ -1,7 +1,7 @@
 """Pose formats: COLMAP text and binary models, and an omega/phi/kappa CSV with a CRS.
 
-Every reader returns a :class:`~streetcd.views.PoseSet` in our conventions (see
-``streetcd.camera``). Readers raise :class:`~streetcd.errors.InputError` naming the file,
+Every reader returns a :class:`~streetcd.types.PoseSet` in our conventions (see
+``streetcd.geometry.camera``). Readers raise :class:`~streetcd.errors.InputError` naming the file,
 the line and the field on malformed input.
 
 COLMAP
@@ -12,7 +12,7 @@ COLMAP
 
 OPK CSV
     One row per image: ``name,x,y,z,omega,phi,kappa`` (metres in the CRS, degrees, the
-    photogrammetric convention of :func:`streetcd.camera.opk_to_rotation`), then the
+    photogrammetric convention of :func:`streetcd.geometry.camera.opk_to_rotation`), then the
     intrinsics ``width,height,fx,fy,cx,cy,k1,k2,p1,p2,k3`` (pixels, OpenCV convention), and an
     optional ``time`` (seconds). The first line is ``# crs=EPSG:XXXX``.
 """
@@ -27,16 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-from streetcd.camera import (
-    Intrinsics,
-    Pose,
+from streetcd.errors import CorruptFileError, InputError, MissingInputError
+from streetcd.geometry.camera import (
     opk_to_rotation,
     quaternion_to_rotation,
     rotation_to_opk,
     rotation_to_quaternion,
 )
-from streetcd.errors import CorruptFileError, InputError, MissingInputError
-from streetcd.views import PoseSet, View
+from streetcd.types import Intrinsics, Pose, PoseSet, View
 
 # COLMAP camera models we read: name -> (model id, parameter names)
 _COLMAP_MODELS: dict[str, tuple[int, tuple[str, ...]]] = {

@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from streetcd.camera import Intrinsics, Pose, look_at
 from streetcd.errors import InputError
+from streetcd.geometry.camera import look_at
 from streetcd.synth.layout import CURB_H, build_street
 from streetcd.synth.scene import Scene, SceneBuilder, Street, freeze, rotation_z
-from streetcd.views import View
+from streetcd.types import Intrinsics, Pose, View
 
 DEFAULT_CRS = "EPSG:32648"  # WGS 84 / UTM zone 48N
 DEFAULT_ORIGIN_EN = (372_000.0, 143_000.0)

@@ -36,8 +36,8 @@ import cv2
 import numpy as np
 
 from streetcd import classes
-from streetcd.camera import Pose, backproject, project
 from streetcd.errors import InputError
+from streetcd.geometry.camera import backproject, project
 from streetcd.io.las import write_las
 from streetcd.io.poses import write_colmap_text, write_opk_csv
 from streetcd.synth.build import build_city_scene, build_street_scene, camera_strip
@@ -45,7 +45,7 @@ from streetcd.synth.raycast import footprints
 from streetcd.synth.render import cast_view, shade_view
 from streetcd.synth.scanner import ScanParams, scan_street
 from streetcd.synth.scene import BOTH, EPOCH1, EPOCH2, Scene
-from streetcd.views import View
+from streetcd.types import Pose, View
 
 Progress = Callable[[int, int], None]
 LAS_DATE = date(2023, 5, 8)  # fixed header date: files are reproducible byte for byte

@@ -44,16 +44,11 @@ def srgb_to_linear(c: tuple[float, float, float]) -> tuple[float, float, float]:
 
 @njit(cache=True, inline="always")
 def _hash(ix, iy, iz, s):  # pragma: no cover - numba
+    """Uniform [0, 1] value for integer lattice point (ix, iy, iz) and seed s."""
     h = (ix * 374761393 + iy * 668265263 + iz * 1440662683 + s * 2246822519) & 0xFFFFFFFF
     h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF
     h = h ^ (h >> 16)
     return h / 4294967295.0
-
-
-@njit(cache=True)
-def hash01(ix, iy, iz, s):  # pragma: no cover - numba
-    """Uniform [0, 1] value for integer lattice point (ix, iy, iz) and seed s."""
-    return _hash(ix, iy, iz, s)
 
 
 @njit(cache=True)

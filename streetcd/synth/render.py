@@ -13,11 +13,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from streetcd.camera import pixel_grid, pixel_rays
+from streetcd.geometry.camera import pixel_grid, pixel_rays
 from streetcd.synth import materials as M
 from streetcd.synth.raycast import normal_at, trace
 from streetcd.synth.scene import EPOCH2, Scene, Street
-from streetcd.views import View
+from streetcd.types import View
 
 SUN_IRRADIANCE = 2.2  # relative to the sky term; a sunny day
 SKY_IRRADIANCE = 0.55

@@ -1,0 +1,539 @@
+"""The MLS archive as a zarr v3 tile store: its format, and reading it (:class:`TileStore`).
+
+Writing it (streamed, resumable, parallel) is :mod:`streetcd.store.ingest`; the readers of
+the source files are :mod:`streetcd.io.readers`.
+
+Layout of ``STORE.zarr`` (format ``streetcd-tiles/2``, one zarr v3 hierarchy)::
+
+    zarr.json            root group; attribute ``streetcd_tiles``: the store settings
+                         (tile_size_m, scale_m, origin, crs), ``files`` (a record per source
+                         path) and ``generation`` N, the index generation readers use
+    index/g<N>/          the tile index; group attribute ``sources``: [path, key] per row
+        segments    (S, 11) int64  i, j, source row, start, count, min xyz, max xyz
+        classes     (K, 3)  int64  segment row, class code, point count
+    points/<key>/        every point of one source file version, one array per field
+        xyz             (N, 3) int32   round((X_crs − corner) / scale), corner = (i·ts, j·ts, 0)
+        classification  (N,) uint8
+        intensity       (N,) uint16    when the source has it (LAS always does)
+        rgb             (N, 3) uint16  when present
+        gps_time        (N,) float64   when present
+    _staging/<key>/      a source being ingested; renamed to points/<key> when committed
+    .lock                held (flock) by the one ingest that writes the store
+
+A **segment** is rows ``start … start + count`` of ``points/<key>`` that all lie in tile
+(i, j) = (⌊X / tile_size⌋, ⌊Y / tile_size⌋); its min/max xyz are in the integer units of
+``xyz``. Ingest buffers each tile's points and writes them out as one run, so a tile is one
+segment per source, or a few when a source is larger than the ingest buffer. Segment rows are
+sorted by (i, j, source row, start): a tile is a block of consecutive rows, and its points
+come in source-path order, then file order.
+
+**Why this layout.** The cost of building the store is one zarr array per field per source
+file, one chunk per 262,144 points and one index row per segment: linear in points, a few
+bytes per tile. (The first layout, a group of arrays per tile and file plus a rename each,
+paid that per tile, which dominated the build: see docs/BENCHMARKS.md.) Opening reads two small
+arrays, not a JSON object per tile; a bounding-box lookup is a binary search of the box's grid
+cells in the sorted (i, j) codes, so its cost does not grow with the store.
+
+**Coordinates** are int32 at the store scale (1 mm by default) relative to the tile corner: a
+50 m tile spans 0…50 000 units, z (CRS heights) fits ±2 147 km, and the tile grid is anchored
+at CRS (0, 0), so a tile's content does not depend on which file came first. Measured on
+scan-like MLS points (see benchmarks/ingest.py, ``coords`` table, and docs/BENCHMARKS.md):
+int32 + Blosc-zstd stores xyz in fewer bytes than local float64 and decodes faster; the
+quantisation error (≤ 0.5 mm) is below the 1 mm scale every MLS archive is delivered at.
+
+**Readers** trust only the root attribute: a generation and the points of a source exist for
+them once it names them (how ingest commits: :mod:`streetcd.store.ingest`). Readers take no
+lock. A TileStore opened before a commit that replaced a source cannot read that source's
+points any more: open the store again. Decoded tiles are kept in one LRU cache per process,
+:func:`tile_cache`, created on first use and sized by ``STREETCD_TILE_CACHE_MB`` (MiB,
+default 1024).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from streetcd.errors import CorruptFileError, InputError, MissingInputError
+from streetcd.types import PointCloud
+
+FORMAT = "streetcd-tiles/2"
+INDEX_ATTR = "streetcd_tiles"
+LOCK_NAME = ".lock"
+_SEGMENT_COLUMNS = 11  # i, j, source row, start, count, min xyz, max xyz
+CACHE_ENV = "STREETCD_TILE_CACHE_MB"  # MiB of the process-wide tile cache
+
+
+# --- the index ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Fragment:
+    """One source file's points in one tile."""
+
+    key: str
+    source: str
+    count: int
+
+
+@dataclass(frozen=True)
+class TileInfo:
+    """One ground tile as the index describes it.
+
+    bounds : (minx, miny, minz, maxx, maxy, maxz) float, metres in the CRS, of its points.
+    box : (minx, miny, maxx, maxy), the tile square in the CRS.
+    classes : class code → point count.
+    """
+
+    id: str
+    i: int
+    j: int
+    count: int
+    bounds: tuple[float, float, float, float, float, float]
+    box: tuple[float, float, float, float]
+    classes: dict[int, int]
+    fragments: tuple[Fragment, ...]
+
+    @property
+    def sources(self) -> list[str]:
+        return [f.source for f in self.fragments]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "i": self.i,
+            "j": self.j,
+            "bounds": list(self.bounds),
+            "box": list(self.box),
+            "count": self.count,
+            "classes": {str(k): v for k, v in sorted(self.classes.items())},
+            "sources": self.sources,
+        }
+
+
+def tile_id(i: int, j: int) -> str:
+    return f"{i}_{j}"
+
+
+def _cell_codes(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """(N,) uint64 codes of grid cells (i, j) int64, |i|, |j| < 2³¹, ordered as (i, j) are."""
+    bias = np.int64(2**31)
+    hi = (np.asarray(i, dtype=np.int64) + bias).astype(np.uint64)
+    lo = (np.asarray(j, dtype=np.int64) + bias).astype(np.uint64)
+    return (hi << np.uint64(32)) | lo
+
+
+def _read_generation(
+    path: Path, generation: int | None
+) -> tuple[list[tuple[str, str]], np.ndarray, np.ndarray]:
+    """The [(path, key)] sources, segments (S, 11) and classes (K, 3) of one index generation."""
+    if generation is None:  # a store that has no committed file yet
+        return [], np.empty((0, _SEGMENT_COLUMNS), np.int64), np.empty((0, 3), np.int64)
+    group = zarr.open_group(str(path / "index" / f"g{generation}"), mode="r")
+    listed: Any = group.attrs.asdict()["sources"]
+    sources = [(str(p), str(k)) for p, k in listed]
+    segments = np.asarray(group["segments"][:], dtype=np.int64)  # type: ignore[index]
+    classes = np.asarray(group["classes"][:], dtype=np.int64)  # type: ignore[index]
+    return sources, segments, classes
+
+
+# --- the process-wide tile cache ---------------------------------------------------------
+
+
+class TileCache:
+    """LRU cache of decoded tiles (PointCloud) bounded by their bytes, shared by all stores
+    of a process so that neighbouring views reuse tiles. The process-wide one,
+    :func:`tile_cache`, holds ``STREETCD_TILE_CACHE_MB`` MiB (default 1024)."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = int(max_bytes)
+        self.bytes = 0
+        self.hits = 0
+        self.misses = 0
+        self._items: OrderedDict[tuple, tuple[PointCloud, int]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def nbytes(cloud: PointCloud) -> int:
+        arrays = (cloud.xyz, cloud.classification, cloud.intensity, cloud.rgb, cloud.gps_time)
+        return sum(a.nbytes for a in arrays if a is not None)
+
+    def get(self, key: tuple) -> PointCloud | None:
+        with self._lock:
+            item = self._items.get(key)
+            if item is None:
+                self.misses += 1
+                return None
+            self._items.move_to_end(key)
+            self.hits += 1
+            return item[0]
+
+    def put(self, key: tuple, cloud: PointCloud) -> None:
+        size = self.nbytes(cloud)
+        if size > self.max_bytes:
+            return
+        with self._lock:
+            if key in self._items:
+                return
+            self._items[key] = (cloud, size)
+            self.bytes += size
+            while self.bytes > self.max_bytes:
+                _, (_, old) = self._items.popitem(last=False)
+                self.bytes -= old
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self.bytes = 0
+
+
+_TILE_CACHE: TileCache | None = None
+_TILE_CACHE_LOCK = threading.Lock()
+
+
+def tile_cache() -> TileCache:
+    """The process-wide :class:`TileCache`, created on the first call with
+    ``STREETCD_TILE_CACHE_MB`` MiB (default 1024). InputError, naming the variable and its
+    value, when that is not a number ≥ 0."""
+    global _TILE_CACHE
+    if _TILE_CACHE is None:
+        with _TILE_CACHE_LOCK:
+            if _TILE_CACHE is None:
+                _TILE_CACHE = TileCache(_cache_bytes())
+    return _TILE_CACHE
+
+
+def _cache_bytes() -> int:
+    """The tile cache's size in bytes, from ``STREETCD_TILE_CACHE_MB`` (MiB, default 1024)."""
+    raw = os.environ.get(CACHE_ENV, "1024")
+    try:
+        mib = float(raw)
+    except ValueError:
+        mib = math.nan
+    if not (math.isfinite(mib) and mib >= 0):
+        raise InputError(
+            f"{CACHE_ENV}={raw!r}: the tile cache size must be a number of MiB >= 0 "
+            "(e.g. 1024, the default)"
+        )
+    return int(mib * 2**20)
+
+
+# --- reading -----------------------------------------------------------------------------
+
+
+class _TileTable(Mapping[str, TileInfo]):
+    """Tile id → :class:`TileInfo` of a store, in (i, j) order; an entry is built on first
+    access, so opening a store of 10,000 tiles does not make 10,000 objects."""
+
+    def __init__(self, store: TileStore) -> None:
+        self._store = store
+        self._built: dict[int, TileInfo] = {}
+
+    def __len__(self) -> int:
+        return len(self._store._ij)
+
+    def __iter__(self) -> Iterator[str]:
+        return (tile_id(i, j) for i, j in self._store._ij.tolist())
+
+    def __getitem__(self, tid: str) -> TileInfo:
+        row = self._store._row(tid)
+        if row is None:
+            raise KeyError(tid)
+        return self.at(row)
+
+    def at(self, row: int) -> TileInfo:
+        info = self._built.get(row)
+        if info is None:
+            info = self._built[row] = self._store._info(row)
+        return info
+
+
+class TileStore:
+    """A tile store opened for reading. ``TileStore.open(path)``.
+
+    origin : (3,) float64, CRS metres; every PointCloud it returns is local to it.
+    tiles : mapping tile id → :class:`TileInfo`, in (i, j) order.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        index: dict[str, Any],
+        sources: list[tuple[str, str]],
+        segments: np.ndarray,
+        classes: np.ndarray,
+    ) -> None:
+        self.path = path
+        self.index = index
+        self.tile_size_m = float(index["tile_size_m"])
+        self.scale_m = float(index["scale_m"])
+        self.origin = np.asarray(index["origin"], dtype=np.float64)
+        self.crs: str | None = index["crs"]
+        self.sources = sources
+        self._segments = segments
+        self._classes = classes
+        ij = segments[:, :2]
+        self._first = np.flatnonzero(np.r_[True, np.any(ij[1:] != ij[:-1], axis=1)])[
+            : len(segments)
+        ]
+        self._last = np.r_[self._first[1:], len(segments)].astype(np.int64)
+        self._ij = ij[self._first]
+        self._codes = _cell_codes(self._ij[:, 0], self._ij[:, 1])  # sorted: segments are
+        self._counts = (
+            np.add.reduceat(segments[:, 4], self._first) if len(segments) else np.zeros(0, int)
+        )
+        self._arrays: dict[int, dict[str, Any]] = {}  # source row → its zarr arrays
+        self.tiles = _TileTable(self)
+
+    @classmethod
+    def open(cls, path: str | Path) -> TileStore:
+        path = Path(path).resolve()
+        generation = None
+        for _ in range(5):
+            index = read_index(path)
+            if index is None:
+                raise MissingInputError(
+                    f"not a streetcd tile store (no '{INDEX_ATTR}' index): {path}"
+                )
+            generation = index["generation"]
+            try:
+                return cls(path, index, *_read_generation(path, generation))
+            except FileNotFoundError:  # an ingest committed meanwhile: read the new index
+                time.sleep(0.05)
+        raise MissingInputError(f"{path}: index generation {generation} is missing")
+
+    def _row(self, tid: str) -> int | None:
+        """The row of tile ``tid`` ("i_j"), or None where the store has no such tile."""
+        try:
+            i, j = (int(v) for v in tid.split("_"))
+        except ValueError:
+            return None
+        if not (-(2**31) <= i < 2**31 and -(2**31) <= j < 2**31):
+            return None
+        return self._grid.get((i + 2**31) << 32 | (j + 2**31))
+
+    def _info(self, row: int) -> TileInfo:
+        seg = self._segments[self._first[row] : self._last[row]]
+        i, j = (int(v) for v in self._ij[row])
+        ts = self.tile_size_m
+        corner = np.array([i * ts, j * ts, 0.0])
+        lo = corner + seg[:, 5:8].min(axis=0) * self.scale_m
+        hi = corner + seg[:, 8:11].max(axis=0) * self.scale_m
+        a, b = np.searchsorted(self._classes[:, 0], [self._first[row], self._last[row]])
+        hist = np.bincount(self._classes[a:b, 1], weights=self._classes[a:b, 2], minlength=256)
+        sources, starts = np.unique(seg[:, 2], return_index=True)  # rows are sorted by source
+        counts = np.add.reduceat(seg[:, 4], starts)
+        frags = tuple(
+            Fragment(self.sources[s][1], self.sources[s][0], int(n))
+            for s, n in zip(sources.tolist(), counts.tolist(), strict=True)
+        )
+        return TileInfo(
+            tile_id(i, j),
+            i,
+            j,
+            int(self._counts[row]),
+            (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2])),
+            (i * ts, j * ts, (i + 1) * ts, (j + 1) * ts),
+            {int(c): int(hist[c]) for c in np.flatnonzero(hist)},
+            frags,
+        )
+
+    def __len__(self) -> int:
+        return len(self._ij)
+
+    @property
+    def point_count(self) -> int:
+        return int(self._counts.sum())
+
+    @property
+    def files(self) -> dict[str, dict[str, Any]]:
+        """Source path → record (status "done" or "failed", key, size, mtime_ns, points,
+        tiles, error)."""
+        return self.index["files"]
+
+    def tiles_in_bbox(self, minx: float, miny: float, maxx: float, maxy: float) -> list[TileInfo]:
+        """Tiles whose square meets the box (CRS metres), in (i, j) order: a hash lookup
+        for each grid cell of the box (a vectorised test of every tile where the box has
+        more cells than the store has tiles)."""
+        ts = self.tile_size_m
+        i0, i1 = math.floor(minx / ts), math.floor(maxx / ts)
+        j0, j1 = math.floor(miny / ts), math.floor(maxy / ts)
+        if i1 < i0 or j1 < j0:
+            return []
+        if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._ij):
+            i, j = self._ij[:, 0], self._ij[:, 1]
+            rows = np.flatnonzero((i >= i0) & (i <= i1) & (j >= j0) & (j <= j1)).tolist()
+        else:  # a view's box has a handful of cells: plain dict lookups beat numpy calls
+            grid, bias = self._grid, 2**31
+            codes = (
+                ((i + bias) << 32) | (j + bias)
+                for i in range(i0, i1 + 1)
+                for j in range(j0, j1 + 1)
+            )
+            rows = [r for c in codes if (r := grid.get(c)) is not None]
+        return [self.tiles.at(r) for r in rows]
+
+    @functools.cached_property
+    def _grid(self) -> dict[int, int]:
+        """Cell code (as :func:`_cell_codes`) → tile row; built on the first lookup."""
+        return dict(zip(self._codes.tolist(), range(len(self._codes)), strict=True))
+
+    def read_tile(self, tid: str, *, cache: bool = True) -> PointCloud:
+        """All points of tile ``tid`` as a PointCloud local to :attr:`origin` (sources in
+        path order, then file order). Cached in the process-wide :func:`tile_cache`; its
+        arrays are then read-only (shared by every caller of this process)."""
+        return self.read_tiles([tid], cache=cache)[tid]
+
+    def read_tiles(self, tids: Sequence[str], *, cache: bool = True) -> dict[str, PointCloud]:
+        """:meth:`read_tile` for several tiles at once: {tile id: cloud}.
+
+        A source file's points are stored in chunks of ``chunk_points`` rows, each
+        compressed as a whole, and a tile's run is usually a few thousand rows of one chunk:
+        read tile by tile, a chunk was decompressed again for every tile in it. Here each
+        chunk the missing tiles need is decompressed once (the gain, per tile and per segment
+        crop: docs/BENCHMARKS.md).
+        """
+        tc = tile_cache() if cache else None
+        out: dict[str, PointCloud] = {}
+        todo: list[tuple[str, int, TileInfo, tuple]] = []
+        for tid in dict.fromkeys(tids):
+            row = self._row(tid)
+            if row is None:
+                raise MissingInputError(f"{self.path}: no tile {tid!r}")
+            info = self.tiles.at(row)
+            key = (str(self.path), tid, tuple((f.key, f.count) for f in info.fragments))
+            if tc is not None and (hit := tc.get(key)) is not None:
+                out[tid] = hit
+            else:
+                todo.append((tid, row, info, key))
+        runs = {t[0]: self._segments[self._first[t[1]] : self._last[t[1]], 2:5] for t in todo}
+        chunks = self._chunks_for([run for r in runs.values() for run in r.tolist()])
+        for tid, _, info, key in todo:
+            cloud = self._assemble(info, runs[tid], chunks)
+            if tc is not None:
+                for a in (
+                    cloud.xyz,
+                    cloud.classification,
+                    cloud.intensity,
+                    cloud.rgb,
+                    cloud.gps_time,
+                ):
+                    if a is not None:
+                        a.flags.writeable = False
+                tc.put(key, cloud)
+            out[tid] = cloud
+        return {tid: out[tid] for tid in tids}
+
+    def _source_arrays(self, source: int) -> dict[str, Any]:
+        arrays = self._arrays.get(source)
+        if arrays is None:
+            key = self.sources[source][1]
+            group = zarr.open_group(str(self.path / "points" / key), mode="r")
+            arrays = self._arrays[source] = dict(group.arrays())
+        return arrays
+
+    def _chunks_for(self, runs: list[list[int]]) -> dict[tuple[int, str, int], np.ndarray]:
+        """{(source, field, chunk number): its rows} for every chunk the (source, start,
+        count) ``runs`` touch, each read (decompressed) once."""
+        out: dict[tuple[int, str, int], np.ndarray] = {}
+        for source, start, count in runs:
+            for name, a in self._source_arrays(source).items():
+                rows = a.chunks[0]
+                for c in _chunk_numbers(start, count, rows):
+                    if (source, name, c) not in out:
+                        out[source, name, c] = self._read_chunk(source, name, a, c)
+        return out
+
+    def _read_chunk(self, source: int, name: str, a: Any, c: int) -> np.ndarray:
+        """Chunk ``c`` of field ``name`` of a source; a chunk that cannot be read (truncated,
+        corrupt) raises CorruptFileError naming the store, the source file and the field."""
+        rows = a.chunks[0]
+        try:
+            return np.asarray(a[c * rows : (c + 1) * rows])
+        except Exception as exc:
+            path, key = self.sources[source]
+            raise CorruptFileError(
+                f"{self.path}: points of {path} (points/{key}), field {name!r}, chunk {c}: "
+                f"cannot be read ({type(exc).__name__}: {exc}); `touch` the file and ingest "
+                "again to rewrite its points"
+            ) from exc
+
+    def _assemble(
+        self, info: TileInfo, runs: np.ndarray, chunks: dict[tuple[int, str, int], np.ndarray]
+    ) -> PointCloud:
+        """Tile ``info``'s cloud from its (source, start, count) ``runs``, cut out of the
+        decompressed ``chunks`` of :meth:`_chunks_for`."""
+        parts = []
+        for source, start, count in runs.tolist():
+            fields = {}
+            for name, a in self._source_arrays(source).items():
+                rows = a.chunks[0]
+                pieces = [
+                    chunks[source, name, c][max(start - c * rows, 0) : start + count - c * rows]
+                    for c in _chunk_numbers(start, count, rows)
+                ]
+                if len(pieces) == 1:  # a view: the concatenation below copies it once
+                    fields[name] = pieces[0]
+                else:
+                    fields[name] = (
+                        np.concatenate(pieces) if pieces else np.empty((0, *a.shape[1:]), a.dtype)
+                    )
+            parts.append(fields)
+        names = set.intersection(*(set(p) for p in parts))  # fields every source has
+        cat = {n: np.concatenate([p[n] for p in parts]) for n in names}
+        corner = np.array([info.i * self.tile_size_m, info.j * self.tile_size_m, 0.0])
+        xyz = cat["xyz"] * self.scale_m + (corner - self.origin)  # float64, local
+        return PointCloud(
+            xyz=xyz,
+            origin=self.origin,
+            classification=cat["classification"],
+            intensity=cat.get("intensity"),
+            rgb=cat.get("rgb"),
+            gps_time=cat.get("gps_time"),
+            crs=self.crs,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """The index as plain JSON: store settings, ``tiles`` (id, bounds, count, classes,
+        sources) and ``files``."""
+        return {
+            "store": str(self.path),
+            "format": FORMAT,
+            "crs": self.crs,
+            "origin": self.origin.tolist(),
+            "tile_size_m": self.tile_size_m,
+            "scale_m": self.scale_m,
+            "point_count": self.point_count,
+            "tiles": [t.to_json() for t in self.tiles.values()],
+            "files": self.files,
+        }
+
+
+def _chunk_numbers(start: int, count: int, rows: int) -> range:
+    """The chunks of ``rows`` rows that rows ``start … start + count − 1`` lie in."""
+    return range(start // rows, (start + count - 1) // rows + 1) if count > 0 else range(0)
+
+
+def read_index(path: Path) -> dict[str, Any] | None:
+    """The committed root record of the store at ``path``, or None where there is no store."""
+    if not (path / "zarr.json").exists():
+        return None
+    attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
+    index: dict[str, Any] | None = attrs.get(INDEX_ATTR)  # type: ignore[assignment]
+    if index is not None and index.get("format") != FORMAT:
+        raise InputError(
+            f"{path}: tile store format {index.get('format')!r}, expected {FORMAT!r}; "
+            "ingest the archive into a new store"
+        )
+    return index
