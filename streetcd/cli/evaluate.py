@@ -1,5 +1,6 @@
 """``streetcd evaluate``: score the detector on a synthetic scene (Tables 1 and 2 of the
-paper, with the Fig. 10(d) baselines), or sweep the registration error."""
+paper, with the Fig. 10(d) baselines), on an annotated case (a real street: pooled scores, per
+object, and which views the nightly run would flag), or sweep the registration error."""
 
 from __future__ import annotations
 
@@ -84,6 +85,13 @@ def _write_json(path: Path | None, data: dict) -> None:
     help="Synthetic scene folder (from `streetcd synth`).",
 )
 @click.option(
+    "--case",
+    "case",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="Annotated case folder: images/, sparse/ (poses), cloud/*.laz, gt/<stem>.mask.png, "
+    "gt/<stem>.dontcare.png [, gt/<stem>.labels.png, case.json].",
+)
+@click.option(
     "--json",
     "json_out",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -94,7 +102,8 @@ def _write_json(path: Path | None, data: dict) -> None:
     "--params",
     "params_path",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Settings YAML (configs/default.yaml layout; its detect: block is used); default: the defaults.",
+    help="Settings YAML (configs/default.yaml layout; its detect: block is used, and for "
+    "--case its run: flag rule); default: the defaults.",
 )
 @click.option(
     "--views", "max_views", type=click.IntRange(min=1), help="Evaluate only the first N views."
@@ -117,6 +126,7 @@ def _write_json(path: Path | None, data: dict) -> None:
 )
 def evaluate(
     scene: Path | None,
+    case: Path | None,
     json_out: Path | None,
     params_path: Path | None,
     max_views: int | None,
@@ -126,18 +136,25 @@ def evaluate(
     out_dir: Path,
 ) -> None:
     """Score the detector on a synthetic scene: Table 1 (GDR, FDR, TP, FP, kappa) with the
-    paper's baselines, Table 2 per object type; or kappa against the registration error."""
+    paper's baselines, Table 2 per object type; on an annotated case (--case: the same rates,
+    per object, and the views the nightly run's rule flags); or kappa against the
+    registration error."""
     from rich.console import Console
 
     from streetcd.config import load_config
 
     console = Console(stderr=False)
-    if (scene is None) == (sweep is None):
-        raise click.UsageError("give either --scene DIR or --sweep-pose-noise LEVELS")
+    if sum(x is not None for x in (scene, case, sweep)) != 1:
+        raise click.UsageError(
+            "give exactly one of --scene DIR, --case DIR or --sweep-pose-noise LEVELS"
+        )
     try:
-        params = load_config(params_path).detect
+        config = load_config(params_path)
+        params = config.detect
         if sweep is not None:
             data = _run_sweep(console, sweep, seed, out_dir, params, max_views)
+        elif case is not None:
+            data = _run_case(console, case, config, max_views)
         else:
             assert scene is not None
             data = _run_scene(console, scene, params, max_views, not no_baselines)
@@ -210,3 +227,105 @@ def _run_sweep(
         )
     console.print(t)
     return {"seed": seed, "sweep": rows}
+
+
+def _run_case(console: Any, case: Path, config: Any, max_views: int | None) -> dict:
+    from streetcd.eval.case import evaluate_case, load_case
+
+    loaded = load_case(case)
+    n = len(loaded.views) if max_views is None else min(len(loaded.views), max_views)
+    progress = _progress(console)
+    with progress:
+        task = progress.add_task(f"evaluating {case.name}", total=n)
+        report = evaluate_case(
+            loaded, config, max_views=max_views, progress=lambda name: progress.advance(task)
+        )
+    data = report.as_dict()
+    _case_tables(console, data, case.name)
+    console.print(f"{len(report.views)} views, {report.seconds_per_view:.2f} s per view")
+    return data
+
+
+def _case_tables(console: Any, data: dict, name: str) -> None:
+    from rich.table import Table
+
+    o = data["overall"]
+    t = Table(title=f"{name} — change detection results (pooled over {data['n_views']} views)")
+    for col in ("GDR (%)", "FDR (%)", "TP (%)", "FP (%)", "KC", "flagged (%)"):
+        t.add_column(col, justify="right")
+    t.add_row(
+        _num(o["gdr"]),
+        _num(o["fdr"]),
+        _num(o["tp"]),
+        _num(o["fp"]),
+        _num(o["kappa"], 3),
+        _num(o["flagged"], 2),
+    )
+    console.print(t)
+    if data["labelled"] and not data["objects"]:
+        console.print("No labelled objects (gt/*.labels.png hold no label).")
+    elif data["labelled"]:
+        t = Table(title="Per object (labels; detected: covered >= 50 % in half its views)")
+        for col in ("label", "type", "GT px", "found px", "recall (%)", "views det./counted"):
+            t.add_column(col, justify="left" if col == "type" else "right")
+        t.add_column("detected", justify="left")
+        for ob in data["objects"]:
+            t.add_row(
+                str(ob["label"]),
+                ob["type"],
+                str(ob["gt_px"]),
+                str(ob["found_px"]),
+                _num(ob["recall_pct"]),
+                f"{ob['views_detected']}/{ob['views_counted']}",
+                "yes" if ob["detected"] else "no",
+            )
+        console.print(t)
+    f = data["flags"]
+    rule = data["params"]["run"]
+    t = Table(
+        title="Views the nightly run would flag",
+        caption=f"min_region_fraction {rule['min_region_fraction']:g}, "
+        f"min_changed_fraction {rule['min_changed_fraction']:g}",
+    )
+    t.add_column("", justify="left")
+    t.add_column("flagged", justify="right")
+    t.add_column("(%)", justify="right")
+    t.add_row(
+        "views with a true change",
+        f"{f['changed_flagged']}/{f['changed_views']}",
+        _num(f["changed_flagged_pct"]),
+    )
+    t.add_row(
+        "views without change",
+        f"{f['unchanged_flagged']}/{f['unchanged_views']}",
+        _num(f["unchanged_flagged_pct"]),
+    )
+    t.add_row(
+        "pixels flagged on views without change", "", _num(f["unchanged_pixels_flagged_pct"], 3)
+    )
+    t.add_row("flagged pixels on dontcare", "", _num(f["flagged_on_dontcare_pct"]))
+    console.print(t)
+    t = Table(title="Per view")
+    cols = ("view", "GT px", "flagged by run", "detected px", "KC", "surface (%)", "evidence (%)")
+    for col in (*cols, "raw change GT / rest"):
+        t.add_column(col, justify="left" if col == "view" else "right")
+    t.add_column("neighbours (baseline m, * unused)", justify="left")
+    t.add_column("s", justify="right")
+    for v in data["per_view"]:
+        nbs = ", ".join(
+            f"{Path(n['name']).stem} {n['baseline_m']:.2f}{'' if n['used'] else '*'}"
+            for n in v["neighbours"]
+        )
+        t.add_row(
+            v["name"],
+            str(v["gt_px"]),
+            "yes" if v["flagged_by_run"] else "no",
+            str(v["detected_px"]),
+            _num(v["kappa"], 3),
+            _num(v["surface_pct"]),
+            _num(v["evidence_pct"]),
+            f"{_num(v['raw_change_truth'], 3)} / {_num(v['raw_change_rest'], 3)}",
+            nbs if v["error"] is None else v["error"],
+            _num(v["seconds"], 1),
+        )
+    console.print(t)
