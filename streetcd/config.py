@@ -221,6 +221,39 @@ class RefineParams:
 
 
 @dataclass(frozen=True)
+class TextureParams:
+    """Texture cue (:mod:`streetcd.detect.texture`; an addition to the paper, whose eq. 5
+    compares single pixels): the normalised cross-correlation of the view and each neighbour
+    warped through the old surface, over a window. ``enabled = False`` is the paper's method.
+    """
+
+    enabled: bool = True
+    weight: float = 1.0  # the fused change is max(C_p, k · A_p, weight · T_p) (tuned, TUNING.md)
+    window_px: int = 11  # NCC window side, at ``scale`` of the image
+    min_std: float = 4.0  # grey levels: flatter windows give no evidence
+    scale: float = 0.5  # resolution the cue runs at (tolerance to registration error)
+    # registration error tolerated (px at REFERENCE_WIDTH_PX): the best NCC over shifts of the
+    # warped neighbour up to this much (twice eq. 5's envelope: a window's texture needs it)
+    registration_tolerance_px: float = 8.0
+    # where the old surface is of these classes (empty: every class); the street inventory
+    # by default, the objects a city's database tracks (on façades and trees the texture of a
+    # window does not survive the registration error of synthetic streets: docs/TUNING.md)
+    classes: tuple[int, ...] = classes.INVENTORY
+
+    def __post_init__(self) -> None:
+        _check(self.weight >= 0, "texture.weight", self.weight, ">= 0")
+        _check(self.window_px >= 3, "texture.window_px", self.window_px, ">= 3")
+        _check(self.min_std >= 0, "texture.min_std", self.min_std, ">= 0")
+        _check(0 < self.scale <= 1, "texture.scale", self.scale, "in (0, 1]")
+        _check(
+            self.registration_tolerance_px >= 0,
+            "texture.registration_tolerance_px",
+            self.registration_tolerance_px,
+            ">= 0",
+        )
+
+
+@dataclass(frozen=True)
 class DetectParams:
     """Everything one view's detection needs."""
 
@@ -230,6 +263,7 @@ class DetectParams:
     graphcut: GraphCutParams = field(default_factory=GraphCutParams)
     appearance: AppearanceParams = field(default_factory=AppearanceParams)
     refine: RefineParams = field(default_factory=RefineParams)
+    texture: TextureParams = field(default_factory=TextureParams)
     max_range_m: float = 60.0  # points farther than this from the camera are ignored
 
     def __post_init__(self) -> None:
@@ -323,8 +357,11 @@ class Config:
         re-detected for identical results.
         """
         r = self.run
+        detect = params_to_dict(self.detect)
+        if not self.detect.texture.enabled:
+            del detect["texture"]  # a cue that is off changes nothing (and older hashes hold)
         blob = {
-            "detect": params_to_dict(self.detect),
+            "detect": detect,
             "segments": {
                 **dataclasses.asdict(r.segments),
                 "n_neighbours": self.detect.correlate.n_neighbours,
@@ -350,6 +387,7 @@ _NESTED = {
         GraphCutParams,
         AppearanceParams,
         RefineParams,
+        TextureParams,
         DetectParams,
         SegmentParams,
         RunParams,

@@ -29,10 +29,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from streetcd.config import DetectParams, scale_px
+from streetcd.config import CorrelateParams, DetectParams, scale_px
 from streetcd.detect.appearance import appearance_change
 from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
 from streetcd.detect.correlate import (
+    HoleDepths,
     Neighbour,
     envelope_levels,
     hole_depths,
@@ -46,11 +47,12 @@ from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions
 from streetcd.detect.silhouette import near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
+from streetcd.detect.texture import texture_change
 from streetcd.errors import (
     EmptyViewError,
     InputError,
 )
-from streetcd.types import Intrinsics, PointCloud, View
+from streetcd.types import Intrinsics, PointCloud, Pose, View
 
 _DEFAULTS = DetectParams()  # frozen: one shared default instance
 log = logging.getLogger(__name__)
@@ -74,6 +76,8 @@ class DetectionResult:
     when the check is off or the cloud has no colours. The node energy is eq. 7 of
     ``max(raw_change, weight · appearance)``. ``cut_mask`` (H, W) bool is the superpixel
     cut's mask before :mod:`streetcd.detect.refine` redrew its outlines (``mask`` when that is off).
+    ``texture`` (H, W) float32 ``T_p`` of :mod:`streetcd.detect.texture` in [0, 1], or None when
+    that cue is off; the node energy then sees ``max(…, texture.weight · T_p)``.
     """
 
     mask: np.ndarray
@@ -93,6 +97,7 @@ class DetectionResult:
     timings: dict[str, float] = field(default_factory=dict)
     appearance: np.ndarray | None = None
     cut_mask: np.ndarray | None = None
+    texture: np.ndarray | None = None
 
 
 def _check_image(image: np.ndarray, view: View) -> np.ndarray:
@@ -199,6 +204,7 @@ def detect_view(
         )
     lap("surface")
     used: list[Neighbour] = []
+    seen: list[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]] = []
     names: list[str] = []
     view_lut = stretch_lut(image, params.correlate.stretch_percentiles)
     for nb_image, nb_view in neighbours:
@@ -211,6 +217,7 @@ def detect_view(
             continue  # a neighbour without points gives no evidence
         lap("surface")
         used.append(_neighbour(nb_image, nb_surf, nb_local, surf, local, view_lut, image, params))
+        seen.append((nb_image, nb_surf.depth, nb_local.intrinsics, nb_local.pose, used[-1].holes))
         names.append(nb_view.name)
         lap("stretch")
     stretched = cv2.LUT(np.ascontiguousarray(image), view_lut)  # = stretch_histogram(image)
@@ -227,6 +234,12 @@ def detect_view(
     fused, appearance = fuse_appearance(image, surf, change, local, params)
     if appearance is not None:
         lap("appearance")
+    texture = None
+    if params.texture.enabled and seen:
+        texture = _texture(image, surf, local, seen, params)
+        fused = np.maximum(fused, np.float32(params.texture.weight) * texture)
+        lap("texture")
+    seen.clear()
     energy = node_energy(fused, params.graphcut.a, params.graphcut.b)
     lap("node_energy")
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut)
@@ -256,6 +269,7 @@ def detect_view(
         timings=timings,
         appearance=appearance,
         cut_mask=cut.mask,
+        texture=texture,
     )
 
 
@@ -325,6 +339,45 @@ def _neighbour(
         lut=lut,
         holes=holes,
     )
+
+
+def _texture(
+    image: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    seen: Sequence[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]],
+    params: DetectParams,
+) -> np.ndarray:
+    """The texture cue ``T_p`` (:mod:`streetcd.detect.texture`) of the view, on the pixels
+    whose old surface is of ``texture.classes`` (all without), weighted by class like eq. 5."""
+    tp = params.texture
+    where = None
+    if tp.classes:
+        where = np.isin(surf.classes, np.asarray(tp.classes, dtype=np.uint8))
+    texture, _ = texture_change(
+        image,
+        surf.depth,
+        local.intrinsics,
+        local.pose,
+        seen,
+        tp,
+        params.correlate.occlusion_tolerance_m,
+        scale_px(tp.registration_tolerance_px, local.intrinsics.width, minimum=0.0),
+        where,
+    )
+    return _low_class_weighted(texture, surf.classes, params.correlate)
+
+
+def _low_class_weighted(
+    change: np.ndarray, classes: np.ndarray, params: CorrelateParams
+) -> np.ndarray:
+    """``change`` (H, W) float32 times ``params.low_class_weight`` where the old surface's
+    class (``classes`` (H, W) uint8) is one of ``params.low_weight_classes`` (trees, roads,
+    ground), as eq. 5's raw change is weighted (paper §3.3)."""
+    if not params.low_weight_classes or params.low_class_weight == 1.0:
+        return change
+    low = np.isin(classes, np.asarray(params.low_weight_classes, dtype=np.uint8))
+    return np.where(low, change * np.float32(params.low_class_weight), change).astype(np.float32)
 
 
 def _tell_no_colours(cache: SurfaceCache | None) -> None:

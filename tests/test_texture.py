@@ -1,0 +1,95 @@
+"""The texture cue (streetcd.detect.texture): exact NCC on small arrays, and a textured wall
+seen by two cameras 1 m apart, where a removed object's old surface is found and the wall is not."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from streetcd.config import DetectParams, TextureParams
+from streetcd.detect.texture import local_ncc, texture_change
+from streetcd.types import Intrinsics, Pose
+
+RNG = np.random.default_rng(5)
+INTR = Intrinsics(160, 120, 150.0, 150.0, 79.5, 59.5)
+WALL_Z = 10.0
+
+
+def test_ncc_is_one_for_gain_and_offset_and_minus_one_for_a_negative():
+    a = RNG.uniform(0, 255, (20, 20)).astype(np.float32)
+    valid = np.ones(a.shape, bool)
+    for b, want in ((a, 1.0), (2 * a + 5, 1.0), (255 - a, -1.0)):
+        ncc, textured = local_ncc(a, b.astype(np.float32), valid, 5, 1.0)
+        assert textured[2:-2, 2:-2].all()
+        assert np.allclose(ncc[2:-2, 2:-2], want, atol=1e-4)
+
+
+def test_ncc_matches_its_definition_and_flat_windows_give_no_evidence():
+    a = RNG.uniform(0, 255, (15, 15)).astype(np.float32)
+    b = RNG.uniform(0, 255, (15, 15)).astype(np.float32)
+    valid = np.ones(a.shape, bool)
+    valid[0, :] = False
+    ncc, textured = local_ncc(a, b, valid, 5, 1.0)
+    wa, wb = a[5:10, 5:10].ravel(), b[5:10, 5:10].ravel()
+    want = np.mean((wa - wa.mean()) * (wb - wb.mean())) / (wa.std() * wb.std())
+    assert ncc[7, 7] == pytest.approx(want, abs=1e-4)
+    flat = np.full(a.shape, 100.0, np.float32)
+    ncc, textured = local_ncc(flat, b, valid, 5, 4.0)
+    assert not textured.any() and not ncc.any()
+
+
+def _wall_texture() -> np.ndarray:
+    """A random pattern on the wall plane z = WALL_Z, 1 cm per texel, blurred a little."""
+    return cv2.GaussianBlur(RNG.uniform(0, 255, (1200, 1200)).astype(np.float32), (0, 0), 1.5)
+
+
+def _render(texture: np.ndarray, center_x: float) -> np.ndarray:
+    """(H, W, 3) uint8 of a camera at (center_x, 0, 0) looking down +z at the wall."""
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float32)
+    x = center_x + (u - INTR.cx) / INTR.fx * WALL_Z  # world X, Y where each ray meets the wall
+    y = (v - INTR.cy) / INTR.fy * WALL_Z
+    grey = cv2.remap(texture, x * 100 + 600, y * 100 + 600, cv2.INTER_LINEAR)
+    return np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+
+def test_an_old_object_in_front_of_a_textured_wall_is_found_and_the_wall_is_not():
+    texture = _wall_texture()
+    view, other = _render(texture, 0.0), _render(texture, 1.0)
+    pose_p = Pose(np.eye(3), np.zeros(3))
+    pose_q = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    depth_q = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    depth_p = depth_q.copy()
+    removed = np.zeros(depth_p.shape, bool)
+    removed[40:80, 60:100] = True
+    depth_p[removed] = 5.0  # the old cloud still has an object 5 m away: the photos do not
+    params = TextureParams(enabled=True, scale=1.0, window_px=9)
+    change, support = texture_change(
+        view, depth_p, INTR, pose_p, [(other, depth_q, INTR, pose_q, None)], params, 0.3
+    )
+    inner = np.zeros_like(removed)
+    inner[45:75, 65:95] = True
+    wall = ~removed & (support > 0)
+    wall[:, :10] = wall[:, -10:] = False
+    assert np.median(change[inner]) > 0.6  # shifted by f·b·(1/5 − 1/10) = 15 px: decorrelated
+    assert np.median(change[wall]) < 0.05 and (change[wall] > 0.5).mean() < 0.02
+    # a cue computed only where asked is zero elsewhere and the same there
+    only, _ = texture_change(
+        view,
+        depth_p,
+        INTR,
+        pose_p,
+        [(other, depth_q, INTR, pose_q, None)],
+        params,
+        0.3,
+        where=removed,
+    )
+    assert not only[~removed].any() and np.allclose(only[inner], change[inner], atol=1e-5)
+
+
+def test_a_texture_cue_that_is_off_changes_no_hash():
+    from streetcd.config import Config
+
+    off = Config(DetectParams(texture=TextureParams(enabled=False)))
+    other_off = Config(DetectParams(texture=TextureParams(enabled=False, weight=0.2)))
+    assert off.results_hash() == other_off.results_hash() != Config().results_hash()
