@@ -227,11 +227,13 @@ class TextureParams:
     warped through the old surface, over a window. ``enabled = False`` is the paper's method.
     """
 
-    enabled: bool = True
+    enabled: bool = False  # opt-in until it fits the per-view time budget (docs/DECISIONS.md)
     weight: float = 1.0  # the fused change is max(C_p, k · A_p, weight · T_p) (tuned, TUNING.md)
     window_px: int = 11  # NCC window side, at ``scale`` of the image
     min_std: float = 4.0  # grey levels: flatter windows give no evidence
-    scale: float = 0.5  # resolution the cue runs at (tolerance to registration error)
+    scale: float = 0.5  # resolution the cue runs at (tolerance to registration error) ...
+    # ... but never wider than this: its cost does not grow with the camera's resolution
+    max_work_width_px: int = 1024
     # registration error tolerated (px at REFERENCE_WIDTH_PX): the best NCC over shifts of the
     # warped neighbour up to this much (twice eq. 5's envelope: a window's texture needs it)
     registration_tolerance_px: float = 8.0
@@ -245,6 +247,12 @@ class TextureParams:
         _check(self.window_px >= 3, "texture.window_px", self.window_px, ">= 3")
         _check(self.min_std >= 0, "texture.min_std", self.min_std, ">= 0")
         _check(0 < self.scale <= 1, "texture.scale", self.scale, "in (0, 1]")
+        _check(
+            self.max_work_width_px >= 64,
+            "texture.max_work_width_px",
+            self.max_work_width_px,
+            ">= 64",
+        )
         _check(
             self.registration_tolerance_px >= 0,
             "texture.registration_tolerance_px",

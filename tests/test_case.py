@@ -347,7 +347,7 @@ def test_the_removed_objects_of_the_real_case_are_found(name):
     at least a third of each object's pixels found, and most of what is flagged is the object."""
     if not REAL_CHANGED.is_dir():
         pytest.skip(f"{REAL_CHANGED} not present (the shared annotated cases)")
-    from streetcd.config import DetectParams
+    from streetcd.config import DetectParams, TextureParams
     from streetcd.detect.cache import SurfaceCache
     from streetcd.detect.chain import detect_view
     from streetcd.eval.case import load_case, read_truth
@@ -357,7 +357,7 @@ def test_the_removed_objects_of_the_real_case_are_found(name):
     case = load_case(REAL_CHANGED)
     by_name = {cv.name: cv for cv in case.views}
     cv = by_name[name]
-    params = DetectParams()
+    params = DetectParams(texture=TextureParams(enabled=True))  # the setting for such clouds
     views = [c.view for c in case.views if c.name != name]
     nbs = select_neighbours(cv.view, views, n=params.correlate.n_neighbours)
     pairs = [(read_image(by_name[n.name].image), n) for n in nbs]

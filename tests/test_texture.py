@@ -90,6 +90,6 @@ def test_an_old_object_in_front_of_a_textured_wall_is_found_and_the_wall_is_not(
 def test_a_texture_cue_that_is_off_changes_no_hash():
     from streetcd.config import Config
 
-    off = Config(DetectParams(texture=TextureParams(enabled=False)))
-    other_off = Config(DetectParams(texture=TextureParams(enabled=False, weight=0.2)))
-    assert off.results_hash() == other_off.results_hash() != Config().results_hash()
+    off = Config(DetectParams(texture=TextureParams(enabled=False, weight=0.2)))
+    on = Config(DetectParams(texture=TextureParams(enabled=True)))
+    assert off.results_hash() == Config().results_hash() != on.results_hash()

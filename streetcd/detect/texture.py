@@ -18,8 +18,9 @@ over a ``w × w`` window ``N(p)`` of pixels where both are valid::
     T_p      = min_q T_q(p)                (like eq. 5: changed only if no neighbour agrees)
 
 Windows without texture (a standard deviation below ``min_std`` grey levels) give no
-evidence, as do pixels no neighbour sees. Computed at ``scale`` of the view's resolution,
-which also makes it tolerant of registration error (a few pixels at full resolution).
+evidence, as do pixels no neighbour sees. Computed at ``scale`` of the view's resolution, which
+helps it tolerate registration error, and never wider than ``max_work_width_px``, which bounds
+its cost on large images.
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ def texture_change(
     textured evidence per pixel).
     """
     h, w = depth_p.shape
-    s = float(params.scale)
+    s = min(float(params.scale), params.max_work_width_px / w)
     small = (max(1, round(w * s)), max(1, round(h * s)))
     intr_s = intrinsics_p.scaled(small[0] / w)
     depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
