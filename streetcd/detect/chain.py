@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from streetcd.config import CorrelateParams, DetectParams, scale_px
+from streetcd.config import DetectParams, scale_px
 from streetcd.detect.appearance import appearance_change
 from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
 from streetcd.detect.correlate import (
@@ -41,6 +41,7 @@ from streetcd.detect.correlate import (
     raw_change,
     registration_radius_px,
     stretch_lut,
+    weigh_low_classes,
 )
 from streetcd.detect.graphcut import cut_changes, nearest_index, node_energy
 from streetcd.detect.refine import refined_mask
@@ -365,19 +366,8 @@ def _texture(
         scale_px(tp.registration_tolerance_px, local.intrinsics.width, minimum=0.0),
         where,
     )
-    return _low_class_weighted(texture, surf.classes, params.correlate)
-
-
-def _low_class_weighted(
-    change: np.ndarray, classes: np.ndarray, params: CorrelateParams
-) -> np.ndarray:
-    """``change`` (H, W) float32 times ``params.low_class_weight`` where the old surface's
-    class (``classes`` (H, W) uint8) is one of ``params.low_weight_classes`` (trees, roads,
-    ground), as eq. 5's raw change is weighted (paper §3.3)."""
-    if not params.low_weight_classes or params.low_class_weight == 1.0:
-        return change
-    low = np.isin(classes, np.asarray(params.low_weight_classes, dtype=np.uint8))
-    return np.where(low, change * np.float32(params.low_class_weight), change).astype(np.float32)
+    weigh_low_classes(texture, surf.classes, params.correlate)
+    return texture
 
 
 def _tell_no_colours(cache: SurfaceCache | None) -> None:

@@ -583,13 +583,20 @@ def raw_change(
             support,
         )
     change[support == 0] = 0.0
+    weigh_low_classes(change, classes_p, params)
+    return change, support
+
+
+def weigh_low_classes(change: np.ndarray, classes: np.ndarray, params: CorrelateParams) -> None:
+    """Multiply ``change`` (H, W) float32, in place, by ``params.low_class_weight`` where the
+    class code ``classes`` (H, W) uint8 is one of ``params.low_weight_classes`` (trees, roads
+    and ground get "a small weight", paper §3.3)."""
     if params.low_weight_classes and params.low_class_weight != 1.0:
         # a 256-entry look-up of the class codes: much faster than np.isin (docs/BENCHMARKS.md)
         table = np.zeros(256, dtype=np.uint8)
         table[np.asarray(params.low_weight_classes, dtype=np.int64)] = 1
-        low = cv2.LUT(np.ascontiguousarray(classes_p, dtype=np.uint8), table).view(bool)
+        low = cv2.LUT(np.ascontiguousarray(classes, dtype=np.uint8), table).view(bool)
         np.multiply(change, np.float32(params.low_class_weight), out=change, where=low)
-    return change, support
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
