@@ -419,8 +419,25 @@ def _build(cls: type, values: dict[str, Any], where: str) -> Any:
             value = _build(_NESTED[sub], value, f"{where}.{name}")
         elif isinstance(value, list):
             value = tuple(value)
+        _check_type(value, sub, f"{where}.{name}")
         kwargs[name] = value
     return cls(**kwargs)
+
+
+# YAML scalars by the field types the dataclasses declare (bool is an int to Python: refused)
+_SCALARS = {
+    "float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "bool": lambda v: isinstance(v, bool),
+}
+
+
+def _check_type(value: Any, annotation: Any, where: str) -> None:
+    """InputError naming the field when a scalar setting has the wrong type (``nan`` in YAML
+    is the string 'nan'; ``.nan`` is the number)."""
+    ok = _SCALARS.get(annotation) if isinstance(annotation, str) else None
+    if ok is not None and not ok(value):
+        raise InputError(f"{where} = {value!r} must be a {annotation}")
 
 
 def params_from_dict(values: dict[str, Any], where: str = "detect") -> DetectParams:
@@ -470,6 +487,11 @@ def load_config(path: str | Path | None) -> Config:
         values = yaml.safe_load(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(f"config file not found: {path}") from None
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid YAML: {exc}") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise InputError(f"{path}: not valid YAML{where}: {problem}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     return config_from_dict(values, str(path))

@@ -92,6 +92,15 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
         RunParams(batch_size=0)
     with pytest.raises(InputError, match="config file not found"):
         load_config(tmp_path / "missing.yaml")
+    path.write_text("detect:\n  texture:\n    weight: nan\n")  # a string to YAML
+    with pytest.raises(InputError, match=r"night.yaml: detect.texture.weight = 'nan' must be"):
+        load_config(path)
+    path.write_text("run:\n  write_overlays: 1\n")
+    with pytest.raises(InputError, match=r"run.write_overlays = 1 must be a bool"):
+        load_config(path)
+    path.write_text("detect: [1, 2\n")
+    with pytest.raises(InputError, match=r"night.yaml: not valid YAML \(line 2, column 1\)"):
+        load_config(path)
 
 
 def test_the_results_hash_covers_exactly_what_changes_results():
