@@ -11,6 +11,7 @@ warm-up (numba compilation, caches), and the median of every step is printed:
 * correlate: histogram stretching of the view, the neighbours' colour envelopes and the
   raw change (eq. 4–5), with the pairwise levels and the near-depth hypothesis (:mod:`streetcd.detect.silhouette`);
 * appearance: the reference-colour check (:mod:`streetcd.detect.appearance`);
+* texture: the texture cue (:mod:`streetcd.detect.texture`), when ``texture.enabled``;
 * superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
 * refine: the regions' pixel outlines by colour (:mod:`streetcd.detect.refine`) and the speckle
   filter again;
@@ -61,13 +62,14 @@ STEPS = (
     "correlate",
     "superpixels",
     "appearance",
+    "texture",
     "graph_cut",
     "refine",
     "sum_of_steps",
     "total",
     "total_in_a_run",
 )
-N_STEPS = 7  # the per-step rows above sum_of_steps
+N_STEPS = 8  # the per-step rows above sum_of_steps
 TIMED_RUNS = ("total", "total_in_a_run")  # whole detect_view calls, timed on their own
 N_IMAGES = 6  # enough that the middle view has 3 overlapping neighbours (4 gave it 2)
 
@@ -110,6 +112,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.detect.chain import (
         _neighbour,
         _raw_change_at_cell_scale,
+        _texture,
         _with_near_hypothesis,
         fuse_appearance,
     )
@@ -166,16 +169,25 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     t2 = time.perf_counter()
     change, _ = fuse_appearance(image, surf, change, local, params)
     t3 = time.perf_counter()
+    if params.texture.enabled and nbs:
+        seen = [
+            (img, s.depth, loc.intrinsics, loc.pose, nb.holes)
+            for (s, loc, img), nb in zip(surfaces[1:], nbs, strict=True)
+        ]
+        texture = _texture(image, surf, local, seen, params)
+        change = np.maximum(change, np.float32(params.texture.weight) * texture)
+    t4 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
-    t4 = time.perf_counter()
-    refined_mask(image, cut.mask, params)
     t5 = time.perf_counter()
+    refined_mask(image, cut.mask, params)
+    t6 = time.perf_counter()
     t["correlate"] = t1 - t0
     t["superpixels"] = t2 - t1
     t["appearance"] = t3 - t2
-    t["graph_cut"] = t4 - t3
-    t["refine"] = t5 - t4
+    t["texture"] = t4 - t3
+    t["graph_cut"] = t5 - t4
+    t["refine"] = t6 - t5
     t["sum_of_steps"] = sum(t[s] for s in STEPS[:N_STEPS])
     return t
 

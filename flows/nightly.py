@@ -1,9 +1,12 @@
 """The nightly Prefect flow: :func:`streetcd.run.night.run_night` with Prefect's tracking.
 
 The sequence is streetcd's own (the CLI and the tests run the same one); this module only
-makes each of its steps a Prefect task — ``ingest-archive``, ``plan-segments`` and one
-``publish-segment`` per street segment, which publishes that segment's batches as the Dask
-workers finish them — and sends the run's log lines to Prefect's run logger.
+makes each of its steps a Prefect task — ``check-inputs``, ``ingest-archive``,
+``plan-segments`` and one ``publish-segment`` per street segment, which publishes that
+segment's batches as the Dask workers finish them — and sends the run's log lines to
+Prefect's run logger. A night whose failed views exceed ``run.max_failed`` (exit code 3 of
+``streetcd run``) ends in a Failed state that carries the run summary as its data; a
+whole-input error fails the flow with that error.
 
 Run it with ``streetcd run`` (progress bar), ``python -m streetcd_flows.nightly --help``, or
 deploy it with ``infra/prefect.yaml``. Installed as the package ``streetcd_flows`` (this
@@ -17,11 +20,14 @@ from typing import Any, TypeVar
 
 from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
+from prefect.states import Failed, State
 from prefect.task_runners import ThreadPoolTaskRunner
 from prefect.utilities.annotations import quote
 
 from streetcd.config import load_config
 from streetcd.run.night import SEGMENTS_IN_FLIGHT, NightInputs, run_night
+from streetcd.run.publish import RunSummary
+from streetcd.run.summary import n_failing, still_failing_line
 
 T = TypeVar("T")
 
@@ -69,17 +75,22 @@ def nightly(
     workers: int | None = None,
     batch_size: int | None = None,
     retry_failed: bool = False,
-) -> dict[str, Any]:
-    """One nightly run; returns the run summary (counts, times, failures).
+    max_failed: float | None = None,
+) -> dict[str, Any] | State:
+    """One nightly run; returns the run summary (counts, times, failures, exit code), or a
+    Failed state carrying it when more views failed than ``run.max_failed`` allows.
 
     images, poses : tonight's images folder and their pose file (COLMAP or OPK CSV).
     store : the tile store of the reference MLS cloud; ``archive`` new LAS/LAZ to add first.
     index, out : the change index (SQLite) and the folder for masks and overlays.
     scheduler : a Dask scheduler address; default ``$STREETCD_SCHEDULER``, else a
-    LocalCluster. config_file : the YAML config (``configs/default.yaml`` layout); workers and
-    batch_size, when given, override its ``run.workers`` and ``run.batch_size``.
+    LocalCluster. config_file : the YAML config (``configs/default.yaml`` layout); workers,
+    batch_size and max_failed, when given, override its ``run.workers``, ``run.batch_size``
+    and ``run.max_failed``.
     """
-    config = load_config(config_file).replace_run(workers=workers, batch_size=batch_size)
+    config = load_config(config_file).replace_run(
+        workers=workers, batch_size=batch_size, max_failed=max_failed
+    )
     inputs = NightInputs(images, poses, store, index, out, archive)
     summary = run_night(
         inputs,
@@ -89,7 +100,17 @@ def nightly(
         tracker=PrefectTracker(),
         holder="the streetcd-nightly flow",
     )
+    if summary.exit_code:
+        return Failed(message=failed_message(summary), data=summary.as_dict())
     return summary.as_dict()
+
+
+def failed_message(summary: RunSummary) -> str:
+    """One line on why a night failed, for its Failed state."""
+    line = f"{n_failing(summary)} of {summary.n_views} views failed"
+    if summary.still_failing:
+        line += f" ({still_failing_line(summary)})"
+    return f"{line}; summary {summary.summary_path}"
 
 
 if __name__ == "__main__":
@@ -104,4 +125,5 @@ if __name__ == "__main__":
     ap.add_argument("--workers", type=int)
     ap.add_argument("--batch-size", type=int)
     ap.add_argument("--retry-failed", action="store_true")
+    ap.add_argument("--max-failed", type=float)
     nightly(**vars(ap.parse_args()))

@@ -46,3 +46,20 @@ LOW_WEIGHT = (VEGETATION, ROAD, GROUND)
 # geometric trace a neighbour can see (a board in front of a plain wall, a hedge in place of
 # a railing).
 INVENTORY = (POLE, SIGN, RAILING, FURNITURE)
+
+# The roles the method needs, by name, and the code each has inside streetcd. A cloud's own
+# codes are mapped to these by the config's class map (``detect.classes``,
+# :class:`streetcd.config.ClassMap`) before detection; the code lists of the detector's
+# settings (``correlate.low_weight_classes``, ``appearance.classes``, ``texture.classes``)
+# name roles by these codes.
+ROLES: dict[str, int] = {
+    "ground": GROUND,
+    "road": ROAD,
+    "vegetation": VEGETATION,
+    "building": BUILDING,
+    "pole": POLE,
+    "sign": SIGN,
+    "railing": RAILING,
+    "furniture": FURNITURE,
+    "vehicle": CAR,
+}

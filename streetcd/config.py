@@ -89,6 +89,9 @@ class CorrelateParams:
     """Neighbour re-projection and raw change (eq. 4–5), paper §3.3."""
 
     n_neighbours: int = 3  # the paper uses 2–3 overlapping views
+    # [ours] px at REFERENCE_WIDTH_PX: neighbours are ranked by overlap × min(1, parallax at
+    # 20 m / this), so a camera that did not move is never one (0 = overlap alone, the paper)
+    min_parallax_px: float = 16.0
     occlusion_tolerance_m: float = 0.3  # a pixel is occluded in q if q sees something closer
     stretch_percentiles: tuple[float, float] = (1.0, 99.0)  # histogram stretching per view
     low_weight_classes: tuple[int, ...] = classes.LOW_WEIGHT  # trees, roads (paper), ground
@@ -109,6 +112,7 @@ class CorrelateParams:
 
     def __post_init__(self) -> None:
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")
+        _check(self.min_parallax_px >= 0, "min_parallax_px", self.min_parallax_px, ">= 0")
         _check(self.occluder_fill_px >= 0, "occluder_fill_px", self.occluder_fill_px, ">= 0")
         lo, hi = self.stretch_percentiles
         _check(
@@ -227,7 +231,7 @@ class TextureParams:
     warped through the old surface, over a window. ``enabled = False`` is the paper's method.
     """
 
-    enabled: bool = False  # opt-in until it fits the per-view time budget (docs/DECISIONS.md)
+    enabled: bool = True  # False: the paper's method (docs/DECISIONS.md, docs/TUNING.md)
     weight: float = 1.0  # the fused change is max(C_p, k · A_p, weight · T_p) (tuned, TUNING.md)
     window_px: int = 11  # NCC window side, at ``scale`` of the image
     min_std: float = 4.0  # grey levels: flatter windows give no evidence
@@ -262,6 +266,44 @@ class TextureParams:
 
 
 @dataclass(frozen=True)
+class ClassMap:
+    """[ours] The cloud's class codes (0-255) for each role the method needs
+    (:data:`streetcd.classes.ROLES`): a city's scanner, its LAS version (formats 0-5 store
+    codes up to 31 only) and its own conventions decide them. A role may have several codes;
+    a code in no role counts as unclassified. The default is the ASPRS LAS 1.4 codes where the
+    standard has the role (ground 2, low/medium/high vegetation 3-5, building 6, road 11) and
+    streetcd's user codes 64-68 for the street inventory it does not name."""
+
+    ground: tuple[int, ...] = (classes.GROUND,)
+    road: tuple[int, ...] = (classes.ROAD,)
+    vegetation: tuple[int, ...] = (3, 4, classes.VEGETATION)
+    building: tuple[int, ...] = (classes.BUILDING,)
+    pole: tuple[int, ...] = (classes.POLE,)
+    sign: tuple[int, ...] = (classes.SIGN,)
+    railing: tuple[int, ...] = (classes.RAILING,)
+    furniture: tuple[int, ...] = (classes.FURNITURE,)
+    vehicle: tuple[int, ...] = (classes.CAR,)
+
+    def __post_init__(self) -> None:
+        owner: dict[int, str] = {}
+        for role in classes.ROLES:
+            for code in getattr(self, role):
+                where = f"classes.{role}"
+                _check(isinstance(code, int) and 0 <= code <= 255, where, code, "codes 0-255")
+                _check(code not in owner, where, code, f"in one role only (also {owner.get(code)})")
+                owner[code] = role
+
+    def table(self) -> tuple[int, ...]:
+        """256 entries: the streetcd code (:data:`streetcd.classes.ROLES`) of each cloud code,
+        :data:`streetcd.classes.UNCLASSIFIED` for codes in no role."""
+        out = [classes.UNCLASSIFIED] * 256
+        for role, code in classes.ROLES.items():
+            for user_code in getattr(self, role):
+                out[user_code] = code
+        return tuple(out)
+
+
+@dataclass(frozen=True)
 class DetectParams:
     """Everything one view's detection needs."""
 
@@ -272,6 +314,7 @@ class DetectParams:
     appearance: AppearanceParams = field(default_factory=AppearanceParams)
     refine: RefineParams = field(default_factory=RefineParams)
     texture: TextureParams = field(default_factory=TextureParams)
+    classes: ClassMap = field(default_factory=ClassMap)  # [ours] the cloud's codes → roles
     max_range_m: float = 60.0  # points farther than this from the camera are ignored
 
     def __post_init__(self) -> None:
@@ -288,9 +331,11 @@ class SegmentParams:
     """How views are cut into street segments and paired with neighbours (ours: the paper
     describes one view). How many neighbours is the detector's ``correlate.n_neighbours``.
 
-    length_m : the trajectory length after which a new segment starts (DESIGN: 50–100 m).
-    max_gap_m : consecutive views farther apart than this start a new segment (a jump to
-        another street, or a hole in the acquisition).
+    length_m : the side of the fixed grid cells in the CRS that segments are (DESIGN:
+        50–100 m; :mod:`streetcd.run.segments`): the same street keeps its segment ids
+        every night.
+    max_gap_m : no longer used (segments were cut at gaps of the trajectory; a grid cell
+        needs no cut); kept so that configs that set it stay valid.
     neighbour_radius_m, max_candidates : the candidate neighbours of a view are the
         ``max_candidates`` nearest centres within this radius (ranked then by overlap).
     bbox_margin_m : the segment box is the trajectory's box grown by this much, so that it
@@ -328,6 +373,11 @@ class RunParams:
     write_overlays : also write a JPEG of each flagged image with its changes drawn.
     batch_size : views per Dask task. workers : processes of the local Dask cluster (when no
         scheduler is given). Both change speed only, never results.
+    max_image_pixels : an image whose header states more pixels fails its view before it is
+        decoded (a decompression bomb). max_failed : how many of the night's views may fail
+        before the run exits non-zero (and the flow ends Failed): a count (a whole number
+        >= 1) or a fraction of the night's views (< 1); 0: any failure fails the night.
+        Neither changes a view's result.
     """
 
     segments: SegmentParams = field(default_factory=SegmentParams)
@@ -336,10 +386,15 @@ class RunParams:
     write_overlays: bool = True
     batch_size: int = 4
     workers: int = 2
+    max_image_pixels: int = 100_000_000
+    max_failed: float = 0.0
 
     def __post_init__(self) -> None:
         _check(self.batch_size >= 1, "run.batch_size", self.batch_size, ">= 1")
         _check(self.workers >= 1, "run.workers", self.workers, ">= 1")
+        _check(self.max_image_pixels >= 1, "run.max_image_pixels", self.max_image_pixels, ">= 1")
+        ok = 0.0 <= self.max_failed < 1.0 or float(self.max_failed).is_integer()
+        _check(ok, "run.max_failed", self.max_failed, "a fraction in [0, 1) or a whole count")
         for name in ("min_changed_fraction", "min_region_fraction"):
             value = getattr(self, name)
             _check(0.0 <= value < 1.0, f"run.{name}", value, "in [0, 1)")
@@ -396,6 +451,7 @@ _NESTED = {
         AppearanceParams,
         RefineParams,
         TextureParams,
+        ClassMap,
         DetectParams,
         SegmentParams,
         RunParams,

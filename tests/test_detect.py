@@ -5,6 +5,7 @@ four cameras side by side. The images are ray-cast here; the cloud samples the s
 * the board in the images only (new since the scan): the mask must cover it.
 """
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -17,13 +18,15 @@ from streetcd import classes
 from streetcd.cli.detect import detect
 from streetcd.config import (
     AppearanceParams,
+    ClassMap,
     DetectParams,
     SurfaceParams,
     ZBufferParams,
+    config_from_dict,
 )
 from streetcd.detect.cache import SurfaceCache
 from streetcd.detect.chain import DetectionResult, detect_view
-from streetcd.errors import CorruptFileError, EmptyViewError, MissingInputError
+from streetcd.errors import CorruptFileError, EmptyViewError, InputError, MissingInputError
 from streetcd.geometry.camera import look_at, pixel_grid, pixel_rays
 from streetcd.io.images import read_image
 from streetcd.io.las import load_clouds, write_las
@@ -527,3 +530,58 @@ def test_image_checksum_is_kept_only_for_images_nothing_can_change():
     key = id(image)
     del image, view
     assert key not in _CHECKSUMS.items  # forgotten with the array
+
+
+def _recoded(cloud: PointCloud, codes: dict[int, int]) -> PointCloud:
+    table = np.arange(256, dtype=np.uint8)
+    for ours, theirs in codes.items():
+        table[ours] = theirs
+    return PointCloud(cloud.xyz, cloud.origin, table[cloud.classification])
+
+
+def test_a_city_coding_with_its_class_map_gives_the_same_result(images):
+    """A city whose LAS 1.2 files code façades 12, the ground 20 and signs 17: its class map
+    reads them as streetcd's roles, and the detection is the one of the standard codes."""
+    cloud = make_cloud(board=False)
+    theirs = _recoded(cloud, {classes.BUILDING: 12, classes.GROUND: 20, classes.SIGN: 17})
+    city = dataclasses.replace(
+        PARAMS, classes=ClassMap(building=(12,), ground=(20,), sign=(17,), vegetation=(5,))
+    )
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    want = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, PARAMS)
+    got = detect_view(images["p.png"], make_view("p.png"), nbs, theirs, city)
+    assert want.mask.any()
+    assert np.array_equal(got.mask, want.mask)
+    assert np.array_equal(got.raw_change, want.raw_change)
+    assert [r.dominant_class for r in got.regions] == [classes.BUILDING]
+    # without the map, the city's codes are no role: its façade is no class boundary
+    unmapped = detect_view(images["p.png"], make_view("p.png"), nbs, theirs, PARAMS)
+    assert {r.dominant_class for r in unmapped.regions} <= {classes.UNCLASSIFIED}
+
+
+def test_an_unclassified_cloud_is_named_once_per_cache(images, caplog):
+    cloud = make_cloud(board=True)
+    flat = PointCloud(cloud.xyz, cloud.origin, np.ones_like(cloud.classification))
+    cache = SurfaceCache()
+    with caplog.at_level("WARNING", logger="streetcd.detect.chain"):
+        run(images, flat, cache)
+        run(images, flat, cache)
+    said = [r.getMessage() for r in caplog.records if "detect.classes" in r.getMessage()]
+    assert len(said) == 1 and "only 0.00 % of the reference points" in said[0]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="streetcd.detect.chain"):
+        run(images, cloud)
+    assert not [r for r in caplog.records if "detect.classes" in r.getMessage()]
+
+
+@pytest.mark.parametrize(
+    "values, message",
+    [
+        ({"pole": [64], "sign": [64]}, r"classes.sign = 64 must be in one role only \(also pole\)"),
+        ({"pole": [300]}, r"classes.pole = 300 must be codes 0-255"),
+        ({"lamp": [64]}, r"unknown parameter\(s\) lamp"),
+    ],
+)
+def test_a_bad_class_map_is_named(values, message):
+    with pytest.raises(InputError, match=message):
+        config_from_dict({"detect": {"classes": values}})

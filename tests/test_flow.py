@@ -3,7 +3,9 @@ a run killed with SIGKILL and resumed, and the infra files."""
 
 from __future__ import annotations
 
+import json
 import os
+import resource
 import signal
 import sqlite3
 import subprocess
@@ -69,8 +71,10 @@ def test_the_flow_ingests_detects_and_publishes(small_city, flow_run):
         )
     names = sorted(r.name for r in runs)
     per_segment = [r for r in runs if r.name.startswith("publish-segment ")]
-    # Prefect sees the ingest, the plan and one task run per segment: never one per image.
-    assert len(runs) == 2 + n_segments, names
+    # Prefect sees the ingest, the input check, the plan and one task run per segment: never
+    # one per image.
+    assert len(runs) == 3 + n_segments, names
+    assert sum(name.startswith("check-inputs-") for name in names) == 1, names
     assert len(per_segment) == n_segments < n
 
 
@@ -236,9 +240,121 @@ def test_cli_run_on_an_index_in_use_fails_at_once_naming_the_holder(
     args += ["--store", str(small_city.store), "--index", str(index), "--out", str(tmp_path)]
     with run_lock(index, "last night's run"):
         result = CliRunner().invoke(run, args)
-    assert result.exit_code == 1, result.output
+    assert result.exit_code == 2, result.output  # a whole-input error: nothing ran
     assert f"change index {index} is in use by another run (last night's run, process" in (
         result.output
     )
     assert f"{os.getpid()} on" in result.output and "Nothing was changed" in result.output
     assert not index.exists()
+
+
+@pytest.fixture(scope="module")
+def scheduler():
+    """A LocalCluster's scheduler address, for the runs below to share (a run starts its
+    own cluster otherwise, 10-20 s each on a busy machine)."""
+    from streetcd.run.cluster import dask_client
+
+    with dask_client(workers=2) as client:
+        yield client.scheduler.address
+
+
+def _bomb_street(small_city, folder: Path) -> tuple[Path, Path, str]:
+    """One street of the city with its second image replaced by a 19 KB JPEG whose header
+    claims 30000x30000: (images, poses, the bomb's name)."""
+    from test_exit_codes import one_street
+    from test_pipeline import bomb_jpeg
+
+    images, poses = one_street(small_city, folder)
+    name = sorted(p.name for p in images.iterdir())[1]
+    bomb_jpeg(images / name)
+    return images, poses, name
+
+
+def test_the_flow_ends_failed_when_views_fail(small_city, prefect_api_url, scheduler, tmp_path):
+    from streetcd_flows.nightly import nightly
+
+    images, poses, bomb = _bomb_street(small_city, tmp_path)
+    state = nightly(
+        images=str(images),
+        poses=str(poses),
+        store=str(small_city.store),
+        index=str(tmp_path / "index.sqlite"),
+        out=str(tmp_path),
+        scheduler=scheduler,
+        batch_size=2,
+        return_state=True,
+    )
+    assert state.is_failed()
+    summary = state.result(raise_on_failure=False)
+    assert summary["exit_code"] == 3 and summary["n_failed"] == 1 and summary["n_done"] == 3
+    assert summary["failures"][0][0].startswith(bomb)
+    assert state.message == f"1 of 4 views failed; summary {summary['summary_path']}"
+    assert json.loads(Path(summary["summary_path"]).read_text())["exit_code"] == 3
+
+    # Allowed by max_failed, the same night (now all skipped, one still failing) completes.
+    again = nightly(
+        images=str(images),
+        poses=str(poses),
+        store=str(small_city.store),
+        index=str(tmp_path / "index.sqlite"),
+        out=str(tmp_path),
+        scheduler=scheduler,
+        max_failed=1,
+        return_state=True,
+    )
+    assert again.is_completed(), again.message
+    assert again.result()["exit_code"] == 0 and len(again.result()["still_failing"]) == 1
+
+
+def test_cli_exit_codes_and_the_still_failing_line(
+    small_city, prefect_api_url, scheduler, tmp_path
+):
+    from click.testing import CliRunner
+
+    from streetcd.cli.run import run
+
+    images, poses, bomb = _bomb_street(small_city, tmp_path)
+    index = tmp_path / "index.sqlite"
+    args = ["--images", str(images), "--poses", str(poses), "--store", str(small_city.store)]
+    args += ["--index", str(index), "--out", str(tmp_path), "--scheduler", scheduler]
+    first = CliRunner().invoke(run, args)
+    assert first.exit_code == 3, first.output
+    assert "4 views, 0 already in the index, 3 detected" in first.output
+    assert f"failed {bomb}" in first.output and "JPEG header says 30000x30000" in first.output
+    assert f"summary: {tmp_path / 'runs'}" in first.output
+    notes = json.loads((tmp_path / "runs" / "latest.json").read_text())["notes"]
+    assert f"warning: 1 view(s) will fail: {bomb}; e.g. {images / bomb}: JPEG header" in notes[-1]
+
+    second = CliRunner().invoke(run, args)
+    assert second.exit_code == 3, second.output
+    assert "4 views, 4 already in the index, 0 detected, 0 flagged, 0 failed" in second.output
+    with ChangeIndex(index, create=False) as idx:
+        (since,) = idx.conn.execute(
+            "SELECT processed_at FROM views WHERE status = 'failed'"
+        ).fetchone()
+    assert f"1 views still failing since {since}" in second.output
+    assert CliRunner().invoke(run, [*args, "--max-failed", "25%"]).exit_code == 0
+    bad = CliRunner().invoke(run, [*args, "--max-failed", "1.5"])
+    assert bad.exit_code == 2 and "--max-failed" in bad.output
+
+
+def test_cli_run_on_a_missing_store_fails_in_one_line_before_prefect_starts(tmp_path, small_city):
+    # A fresh process, as cron runs it: the one line, code 2, and neither Prefect nor Dask
+    # started (they take 6-21 s); CPU time is what the command itself costs.
+    store = tmp_path / "missing.zarr"
+    cmd = [sys.executable, "-m", "streetcd.cli.main", "run", "--images", str(small_city.images)]
+    cmd += ["--poses", str(small_city.poses), "--store", str(store), "--out", str(tmp_path)]
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr == f"Error: tile store not found: {store}\n"
+    assert done.stdout == ""
+    cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    assert cpu_s < 2.0, f"{cpu_s:.2f} s of CPU: more than Python and streetcd's imports"
+    summary = json.loads((tmp_path / "runs" / "latest.json").read_text())
+    assert (
+        summary["exit_code"] == 2
+        and summary["error"] == f"MissingInputError: tile store not found: {store}"
+    )

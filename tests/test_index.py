@@ -249,23 +249,24 @@ def test_the_lock_also_keeps_out_a_second_run_of_the_same_process(tmp_path):
         pass
 
 
-def test_an_index_of_schema_2_is_upgraded_in_place(tmp_path):
+def test_an_index_of_an_older_schema_is_refused_and_left_untouched(tmp_path):
     path = tmp_path / "change_index.sqlite"
     with ChangeIndex(path) as idx:
         idx.publish("r", [ViewRecord("a.jpg", "h", "p", None, "done", flagged=True, score=0.5)])
-    # What a schema-2 index looked like: no capture times.
+    # What a schema-3 index looked like: views keyed by bare name, no change objects.
     con = sqlite3.connect(path)
     con.executescript(
-        "DROP INDEX flagged_when; ALTER TABLE flagged DROP COLUMN captured_at;"
-        " ALTER TABLE views DROP COLUMN captured_at;"
-        " UPDATE meta SET value = '2' WHERE key = 'schema_version';"
+        "DROP TABLE objects; DROP TABLE object_views; DROP TABLE reviews;"
+        " UPDATE meta SET value = '3' WHERE key = 'schema_version';"
     )
     con.close()
-    with ChangeIndex(path) as idx:
-        (row,) = idx.query(since="2000-01-01")
-        assert row.view == "a.jpg" and row.captured_at is None
-        idx.publish(
-            "r", [ViewRecord("b.jpg", "h", "p", None, "done", captured_at="2026-01-02T03:04:05Z")]
-        )
-        got = idx.conn.execute("SELECT captured_at FROM views WHERE view = 'b.jpg'").fetchone()
-        assert got[0] == "2026-01-02T03:04:05Z"
+    before = path.read_bytes()
+    for kwargs in ({}, {"create": False}, {"readonly": True}):
+        with pytest.raises(InputError, match="schema_version 3 keys views by bare file name"):
+            ChangeIndex(path, **kwargs)
+    assert path.read_bytes() == before
+    con = sqlite3.connect(path)
+    assert con.execute("SELECT count(*) FROM sqlite_master WHERE name = 'objects'").fetchone() == (
+        0,
+    )
+    con.close()

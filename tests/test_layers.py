@@ -28,6 +28,7 @@ LAYERS = {
     "streetcd.synth": 5,
     "streetcd.eval": 6,
     "streetcd.cli": 7,
+    "streetcd.report": 7,  # the review page: beside the CLI, which calls it
     "streetcd_flows": 7,
 }
 # streetcd/__init__.py re-exports the public face lazily (by name, on first access).

@@ -74,3 +74,19 @@ def test_overlaps_in_one_batch_equal_overlap_pair_by_pair():
         assert batch.tolist() == [overlap(p, q) for q in views]  # exactly, not approximately
         assert batch[views.index(p)] == 1.0
     assert overlaps(views[0], []).shape == (0,)
+
+
+def test_a_camera_that_did_not_move_is_never_a_neighbour():
+    """The same camera a second later at a red light overlaps best (all of it) and proves
+    nothing: without parallax every depth is photo-consistent."""
+    views = strip()
+    stopped = view("img_03_later.jpg", 3 * 2.0)
+    crept = view("img_03_crept.jpg", 3 * 2.0 + 0.05)  # 0.05 m: 0.9 px at 20 m, below 1.6 px
+    p = views[3]
+    assert overlap(p, stopped) == 1.0 and overlap(p, crept) > overlap(p, views[2])
+    chosen = [v.name for v in select_neighbours(p, [*views, stopped, crept], n=3)]
+    assert "img_03_later.jpg" not in chosen
+    assert chosen[:2] == ["img_02.jpg", "img_04.jpg"]  # full parallax ranks first
+    # overlap alone (the paper's choice) takes the camera that did not move first
+    paper = select_neighbours(p, [*views, stopped, crept], n=3, min_parallax_px=0.0)
+    assert paper[0].name == "img_03_later.jpg"

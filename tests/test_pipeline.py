@@ -137,9 +137,12 @@ def test_read_rgb_refuses_a_cut_jpeg_and_a_wrong_size_naming_the_file(tmp_path):
     assert np.array_equal(image, want) and not image.flags.writeable
     with pytest.raises(CorruptFileError, match=f"{cut}: truncated JPEG"):
         read_rgb(cut, view)
+    other = View("v.jpg", Intrinsics(40, 40, 35.0, 35.0, 20.0, 20.0), view.pose)
+    with pytest.raises(InputError, match="image is 80x60 but the pose of 'v.jpg' says 40x40"):
+        read_rgb(good, other)
+    # the same camera at half the resolution: read, for the caller to rescale the intrinsics
     small = View("v.jpg", Intrinsics(40, 30, 35.0, 35.0, 20.0, 15.0), view.pose)
-    with pytest.raises(InputError, match="image is 80x60 but the pose of 'v.jpg' says 40x30"):
-        read_rgb(good, small)
+    assert np.array_equal(read_rgb(good, small), want)
 
 
 def test_the_overlay_tint_is_half_way_to_red_exactly():
@@ -310,7 +313,7 @@ def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_p
     poses.write_text("\n".join(lines) + "\n")
     index = tmp_path / "change_index.sqlite"
     summary = night(cluster, images, poses, small_city.store, index, tmp_path, PARAMS)
-    errors = dict(summary.failures)
+    errors = {key.rsplit("#", 1)[0]: e for key, e in summary.failures}  # keys: name#hash
     assert set(errors) == {corrupt, lifted, unposed, malformed, twice}
     assert corrupt in errors[corrupt] and "CorruptFileError" in errors[corrupt]
     assert lifted in errors[lifted] and "EmptyViewError" in errors[lifted]
@@ -321,7 +324,7 @@ def test_bad_inputs_are_recorded_and_the_rest_goes_on(small_city, cluster, tmp_p
     assert str(poses) in errors[twice] and f"{twice!r} has 2 poses" in errors[twice]
     assert summary.n_done == len(names) - 5
     with ChangeIndex(index, create=False) as idx:
-        assert dict(idx.failures()) == errors
+        assert {key.rsplit("#", 1)[0]: e for key, e in idx.failures()} == errors
         assert idx.conn.execute("SELECT status FROM runs").fetchone()[0] == "finished"
     again = plan_run(images, poses, small_city.store, index, tmp_path, PARAMS)
     assert again.n_todo == 0 and again.n_skipped == len(names)  # failures are not retried
@@ -482,3 +485,77 @@ def test_new_mls_data_redoes_only_the_views_it_can_reach(small_city, clean_run, 
     plan = plan_run(small_city.images, small_city.poses, store, index, tmp_path, PARAMS)
     todo = sorted(t.view.name for b in plan.batches for t in b.tasks)
     assert todo == near and plan.n_skipped == len(views) - len(near)
+
+
+def bomb_jpeg(path: Path, side: int = 30000, kb: int = 19) -> Path:
+    """A real JPEG of about ``kb`` KB (noise) whose frame header is rewritten to claim
+    ``side`` x ``side`` pixels: what the issue's bad night had (OpenCV would allocate
+    ``3 * side**2`` bytes to decode it)."""
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    for quality in range(95, 5, -5):
+        ok, buf = cv2.imencode(".jpg", rgb, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if len(buf) <= kb * 1024:
+            break
+    data = bytearray(buf.tobytes())
+    sof = data.find(b"\xff\xc0")
+    data[sof + 5 : sof + 9] = side.to_bytes(2, "big") * 2
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_a_decompression_bomb_is_refused_from_its_header_before_decoding(tmp_path):
+    from PIL import Image
+
+    from streetcd.errors import InputError
+    from streetcd.io.images import read_header, read_image
+    from streetcd.types import Intrinsics, Pose, View
+
+    bomb = bomb_jpeg(tmp_path / "bomb.jpg")
+    assert 10_000 < bomb.stat().st_size <= 19 * 1024
+    header = read_header(bomb)
+    assert (header.format, header.width, header.height) == ("JPEG", 30000, 30000)
+    view = View(
+        "bomb.jpg", Intrinsics(30000, 30000, 2e4, 2e4, 15e3, 15e3), Pose(np.eye(3), np.zeros(3))
+    )
+    want = f"{bomb}: JPEG header says 30000x30000 (900.0 MP), over the limit of 100.0 MP"
+    with pytest.raises(InputError, match=want.replace("(", r"\(").replace(")", r"\)")):
+        read_rgb(bomb, view)
+    with pytest.raises(InputError, match="over the limit of 0.0 MP"):
+        read_image(bomb, max_pixels=100)
+    # PIL refuses it too (DecompressionBombError) while reading the EXIF: no capture time,
+    # no exception (it used to escape and lose the view's whole batch)
+    with pytest.raises(Image.DecompressionBombError):
+        Image.open(bomb)
+    assert capture_time(bomb) is None
+
+
+def test_an_image_is_read_as_what_its_bytes_are_not_by_its_name(tmp_path):
+    from streetcd.io.images import read_header, read_image
+
+    rgb = np.random.default_rng(2).integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    named_jpg = tmp_path / "really_a_png.jpg"
+    named_jpg.write_bytes(png.tobytes())  # was: "truncated JPEG (no end-of-image marker)"
+    assert read_header(named_jpg).format == "PNG"
+    assert np.array_equal(read_image(named_jpg), rgb)  # PNG is lossless
+    cv2.imwrite(str(tmp_path / "t.tif"), rgb)
+    assert (read_header(tmp_path / "t.tif").width, read_header(tmp_path / "t.tif").height) == (
+        40,
+        30,
+    )
+
+
+def test_a_view_at_another_resolution_gets_its_intrinsics_rescaled():
+    from streetcd.io.images import fit_view, fits_camera
+    from streetcd.types import Intrinsics, Pose, View
+
+    view = View(
+        "v.jpg", Intrinsics(1920, 1080, 1500.0, 1500.0, 959.5, 539.5), Pose(np.eye(3), np.zeros(3))
+    )
+    half = fit_view(view, 960, 540)
+    i = half.intrinsics
+    assert (i.width, i.height, i.fx, i.fy, i.cx, i.cy) == (960, 540, 750.0, 750.0, 479.5, 269.5)
+    assert half.pose is view.pose and fit_view(view, 1920, 1080) is view
+    assert fits_camera(960, 540, 1920, 1080) and fits_camera(1366, 768, 2732, 1536)
+    assert not fits_camera(960, 720, 1920, 1080)

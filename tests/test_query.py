@@ -171,17 +171,19 @@ def test_since_takes_plain_dates_and_rejects_junk(index_path):
 
 def test_cli_json_lists_the_same_rows(index_path):
     out = CliRunner().invoke(
-        query_cmd, ["--index", str(index_path), "--min-score", "0.7", "--format", "json"]
+        query_cmd,
+        ["--index", str(index_path), "--views", "--min-score", "0.7", "--format", "json"],
     )
     assert out.exit_code == 0, out.output
     data = json.loads(out.output)
     with ChangeIndex(index_path, create=False) as idx:
         expected = [r.view for r in brute(idx.query(), min_score=0.7)]
-    assert data["crs"] == CRS and [r["view"] for r in data["flagged"]] == expected
+    assert data["crs"] == CRS and [r["id"] for r in data["views"]] == expected
+    assert all(r["image"] == r["id"] and r["segment"] == r["segment_id"] for r in data["views"])
 
 
 def test_cli_table_has_one_line_per_view(index_path):
-    out = CliRunner().invoke(query_cmd, ["--index", str(index_path)])
+    out = CliRunner().invoke(query_cmd, ["--index", str(index_path), "--views"])
     assert out.exit_code == 0, out.output
     with ChangeIndex(index_path, create=False) as idx:
         n = len(idx.query())
@@ -195,7 +197,8 @@ def test_cli_table_has_one_line_per_view(index_path):
 def test_geojson_is_wgs84_and_lines_up_with_the_crs(index_path, tmp_path):
     target = tmp_path / "changes.geojson"
     out = CliRunner().invoke(
-        query_cmd, ["--index", str(index_path), "--format", "geojson", "-o", str(target)]
+        query_cmd,
+        ["--index", str(index_path), "--views", "--format", "geojson", "-o", str(target)],
     )
     assert out.exit_code == 0, out.output
     gj = json.loads(target.read_text())
@@ -230,7 +233,7 @@ def test_geojson_is_wgs84_and_lines_up_with_the_crs(index_path, tmp_path):
 
 def test_geojson_native_crs_names_it(index_path):
     out = CliRunner().invoke(
-        query_cmd, ["--index", str(index_path), "--format", "geojson", "--native-crs"]
+        query_cmd, ["--index", str(index_path), "--views", "--format", "geojson", "--native-crs"]
     )
     gj = json.loads(out.output)
     assert gj["crs"]["properties"]["name"] == "urn:ogc:def:crs:EPSG::32648"
@@ -248,3 +251,50 @@ def test_records_round_trip(index_path):
         row = next(r for r in idx.query() if r.regions)
         assert replace(row, regions=()).view == row.view
         assert row.n_regions == len(row.regions)
+
+
+@pytest.mark.parametrize("views", [False, True])
+def test_query_never_creates_or_changes_a_file(tmp_path, index_path, views):
+    flag = ["--views"] if views else []
+    missing = tmp_path / "none.sqlite"
+    out = CliRunner().invoke(query_cmd, ["--index", str(missing), *flag])
+    assert out.exit_code == 1 and "none.sqlite" in out.output and not missing.exists()
+    empty = tmp_path / "empty.sqlite"
+    empty.touch()
+    out = CliRunner().invoke(query_cmd, ["--index", str(empty), *flag])
+    assert out.exit_code == 1 and "not a streetcd change index" in out.output
+    assert empty.stat().st_size == 0 and sorted(p.name for p in tmp_path.iterdir()) == [
+        "empty.sqlite"
+    ]
+    copy = tmp_path / "ro.sqlite"
+    copy.write_bytes(index_path.read_bytes())
+    before = copy.read_bytes()
+    copy.chmod(0o444)
+    try:
+        out = CliRunner().invoke(query_cmd, ["--index", str(copy), "--format", "json", *flag])
+        assert out.exit_code == 0, out.output
+    finally:
+        copy.chmod(0o644)
+    assert copy.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--min-score", "nan"], "--min-score nan must be a finite number in [0, 1]"),
+        (["--min-score", "inf"], "--min-score inf must be a finite number in [0, 1]"),
+        (["--min-score", "1.5"], "--min-score 1.5 must be a finite number in [0, 1]"),
+        (["--bbox", "0,0,nan,1"], "four finite numbers"),
+        (["--bbox", "0,0,inf,1"], "four finite numbers"),
+        (["--bbox", "1,0,0,1"], "minx must be <= maxx"),
+        (["--limit", "-1"], "--limit -1 must be >= 0"),
+        (["--since", "yesterday"], "--since 'yesterday' is not an ISO date"),
+    ],
+)
+@pytest.mark.parametrize("views", [False, True])
+def test_bad_numbers_are_one_line_errors(index_path, args, message, views):
+    flag = ["--views"] if views else []
+    out = CliRunner().invoke(query_cmd, ["--index", str(index_path), *flag, *args])
+    assert out.exit_code == 1
+    assert out.output.strip() == f"Error: {out.output.strip()[7:]}" and message in out.output
+    assert len(out.output.strip().splitlines()) == 1

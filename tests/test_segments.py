@@ -8,6 +8,7 @@ from streetcd.errors import InputError
 from streetcd.geometry.camera import look_at
 from streetcd.run.segments import (
     Segment,
+    cell_id,
     cut_points,
     order_views,
     path_order,
@@ -19,7 +20,9 @@ E0, N0 = 372_000.0, 143_000.0  # UTM-sized coordinates, as real poses have
 INTR = Intrinsics(640, 360, 400.0, 400.0, 319.5, 179.5)
 
 
-def street(n, step_m=4.0, start=(E0, N0), along=(1.0, 0.0), prefix="a", t0=0.0, times=True):
+def street(
+    n, step_m=4.0, start=(E0 + 1.0, N0 + 1.0), along=(1.0, 0.0), prefix="a", t0=0.0, times=True
+):
     """``n`` cameras driving along ``along``, 1.8 m high, looking sideways at a façade 12 m away."""
     along = np.asarray(along, dtype=float)
     side = np.array([-along[1], along[0]])
@@ -73,22 +76,33 @@ def test_cut_points_respects_length_and_is_maximal():
         )
 
 
-def test_a_gap_starts_a_new_segment():
-    views = street(6, prefix="a") + street(6, start=(E0 + 500, N0), prefix="b", t0=100)
-    segments = plan_segments(views, SegmentParams(length_m=1000.0, max_gap_m=30.0))
-    assert [s.views for s in segments] == [
-        tuple(v.name for v in views[:6]),
-        tuple(v.name for v in views[6:]),
-    ]
-
-
-def test_segments_cover_every_view_once_with_bounded_length():
-    views = street(40, step_m=4.9)  # 191 m of street; 10 steps = 49 m, 11 would be 53.9 m
+def test_segments_are_cells_of_a_fixed_grid_in_trajectory_order():
+    views = street(40, step_m=4.9, start=(E0 + 1.0, N0 + 1.0))  # 191 m from E0 + 1 m
     segments = plan_segments(views, SegmentParams(length_m=50.0))
     names = [n for s in segments for n in s.views]
     assert names == [v.name for v in views]
-    assert all(s.length_m <= 50.0 + 1e-9 for s in segments)
-    assert [len(s.views) for s in segments] == [11, 11, 11, 7]
+    assert [s.id for s in segments] == [f"g50-E{int(E0) + 50 * k}-N{int(N0)}" for k in range(4)]
+    by_name = {v.name: v for v in views}
+    for s in segments:
+        west = float(s.id.split("-E")[1].split("-N")[0])
+        xs = [by_name[n].center[0] for n in s.views]
+        assert all(west <= x < west + 50.0 for x in xs)
+
+
+def test_the_same_street_gets_the_same_ids_whatever_images_arrive():
+    night1 = street(30, step_m=4.0, start=(E0 + 1.0, N0 + 1.0))
+    # Another night: other names, other times, one image missing, a slightly other path.
+    night2 = street(30, step_m=4.0, start=(E0 + 1.7, N0 + 1.3), prefix="b", t0=5000.0)
+    del night2[12]
+    ids1 = [s.id for s in plan_segments(night1, SegmentParams(length_m=50.0))]
+    ids2 = [s.id for s in plan_segments(night2, SegmentParams(length_m=50.0))]
+    assert ids1 == ids2 == [f"g50-E{int(E0) + 50 * k}-N{int(N0)}" for k in range(3)]
+
+
+def test_cell_ids_on_edges_negative_and_fractional_coordinates():
+    assert cell_id(100.0, 0.0, 100.0) == "g100-E100-N0"
+    assert cell_id(99.999, -0.001, 100.0) == "g100-E0-N-100"
+    assert cell_id(3.0, 4.0, 2.5) == "g2.500-E2.500-N2.500"
 
 
 def test_polyline_and_bbox_are_in_the_crs():
@@ -100,21 +114,6 @@ def test_polyline_and_bbox_are_in_the_crs():
     hi = np.max(seg.polyline, axis=0) + 15.0
     np.testing.assert_allclose(seg.bbox, [lo[0], lo[1], hi[0], hi[1]])
     assert seg.length_m == pytest.approx(36.0)
-
-
-def test_ids_are_stable_and_follow_content():
-    views = street(20)
-    ids = [s.id for s in plan_segments(views, SegmentParams(length_m=30.0))]
-    again = [s.id for s in plan_segments(views[::-1], SegmentParams(length_m=30.0))]
-    assert ids == again
-    assert len(set(ids)) == len(ids)
-    assert ids[0].startswith("a_000-")
-    moved = list(views)
-    v = moved[0]
-    moved[0] = View(
-        v.name, v.intrinsics, look_at(v.center + [0.01, 0, 0], v.center + [0, 12, 0]), None, v.time
-    )
-    assert plan_segments(moved, SegmentParams(length_m=30.0))[0].id != ids[0]
 
 
 def test_neighbours_are_the_overlapping_views_and_cross_segment_ends():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from streetcd.config import DetectParams, TextureParams
-from streetcd.detect.texture import local_ncc, texture_change
+from streetcd.detect.texture import _best_ncc, _best_ncc_on, _tiles_near, local_ncc, texture_change
 from streetcd.types import Intrinsics, Pose
 
 RNG = np.random.default_rng(5)
@@ -37,6 +37,59 @@ def test_ncc_matches_its_definition_and_flat_windows_give_no_evidence():
     flat = np.full(a.shape, 100.0, np.float32)
     ncc, textured = local_ncc(flat, b, valid, 5, 4.0)
     assert not textured.any() and not ncc.any()
+
+
+def _shifted(x: np.ndarray, dy: int, dx: int, fill: float | bool) -> np.ndarray:
+    """out[r, c] = x[r - dy, c - dx], fill outside."""
+    out = np.full_like(x, fill)
+    h, w = x.shape
+    out[max(dy, 0) : h + min(dy, 0), max(dx, 0) : w + min(dx, 0)] = x[
+        max(-dy, 0) : h + min(-dy, 0), max(-dx, 0) : w + min(-dx, 0)
+    ]
+    return out
+
+
+def _sparse_case(shape=(90, 130)):
+    """A view, a neighbour that is the view moved by (1, -2) px plus noise, holes in both."""
+    a = cv2.GaussianBlur(RNG.uniform(0, 255, shape).astype(np.float32), (3, 3), 0)
+    b = _shifted(a, 1, -2, 0.0) * 0.8 + 20 + RNG.normal(0, 3, shape).astype(np.float32)
+    valid = RNG.uniform(size=shape) > 0.05
+    valid[:, :10] = False
+    return a, b.astype(np.float32), valid
+
+
+def test_best_ncc_is_the_best_local_ncc_over_the_shifts():
+    a, b, valid = _sparse_case()
+    params = TextureParams(window_px=7, min_std=2.0)
+    best, textured = _best_ncc(a, b, valid, params, radius=2)
+    want = np.full(a.shape, -1.0, np.float32)
+    want_textured = np.zeros(a.shape, bool)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            b_s, v_s = _shifted(b, dy, dx, 0.0), _shifted(valid, dy, dx, False)
+            ncc, t = local_ncc(a, b_s, v_s & valid, 7, 2.0)
+            want = np.maximum(want, np.where(t, ncc, -1.0))
+            want_textured |= t
+    want[~want_textured] = 0.0
+    assert (textured == want_textured).all()
+    assert np.abs(best - want).max() < 1e-3
+    # the neighbour is the view moved by (1, -2): that shift finds it, almost everywhere
+    assert np.median(best[textured]) > 0.95
+
+
+def test_the_cue_on_tiles_near_the_wanted_pixels_equals_the_cue_everywhere_there():
+    a, b, valid = _sparse_case((150, 210))
+    where = np.zeros(a.shape, bool)
+    where[20:25, 30:33] = where[100:140, 180:182] = where[149, 0] = True
+    params = TextureParams(window_px=11, min_std=2.0)
+    box = (slice(0, 150), slice(0, 210))
+    tiles = _tiles_near(where, (210, 150), box, reach=11 // 2 + 2)
+    assert 0 < len(tiles.origins) < 35  # 7 x 5 tiles of 32 px in all: only some are computed
+    full = _best_ncc(a, b, valid, params, radius=2)
+    tiled = _best_ncc_on(tiles, a, b, valid, params, radius=2)
+    near = cv2.dilate(where.view(np.uint8), np.ones((5, 5), np.uint8)).view(bool)
+    for got, want in zip(tiled, full, strict=True):
+        assert (got[near] == want[near]).all()
 
 
 def _wall_texture() -> np.ndarray:
@@ -91,5 +144,7 @@ def test_a_texture_cue_that_is_off_changes_no_hash():
     from streetcd.config import Config
 
     off = Config(DetectParams(texture=TextureParams(enabled=False, weight=0.2)))
+    off_too = Config(DetectParams(texture=TextureParams(enabled=False)))
     on = Config(DetectParams(texture=TextureParams(enabled=True)))
-    assert off.results_hash() == Config().results_hash() != on.results_hash()
+    assert off.results_hash() == off_too.results_hash() != on.results_hash()
+    assert on.results_hash() == Config().results_hash()  # on by default

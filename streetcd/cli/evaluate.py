@@ -157,16 +157,18 @@ def evaluate(
             data = _run_case(console, case, config, max_views)
         else:
             assert scene is not None
-            data = _run_scene(console, scene, params, max_views, not no_baselines)
+            data = _run_scene(console, scene, config, max_views, not no_baselines)
     except StreetcdError as exc:
         raise click.ClickException(str(exc)) from None
     _write_json(json_out, data)
 
 
 def _run_scene(
-    console: Any, scene: Path, params: Any, max_views: int | None, baselines: bool
+    console: Any, scene: Path, config: Any, max_views: int | None, baselines: bool
 ) -> dict:
     from streetcd.eval.evaluate import evaluate_scene, load_scene
+
+    params = config.detect
 
     n = len(load_scene(scene).views) if max_views is None else max_views
     progress = _progress(console)
@@ -182,8 +184,30 @@ def _run_scene(
     data = report.as_dict()
     _table1(console, data["overall"], data["baselines"])
     _table2(console, data["per_type"])
+    data["flags"] = _scene_flags(report, config.run)
+    f = data["flags"]
+    console.print(
+        f"views the run would flag: {f['changed_flagged']} of {f['changed_views']} with a true "
+        f"change, {f['unchanged_flagged']} of {f['unchanged_views']} without"
+    )
     console.print(f"{len(report.views)} views, {report.seconds_per_view:.2f} s per view")
     return data
+
+
+def _scene_flags(report: Any, run: Any) -> dict[str, int]:
+    """How many views with and without a true change the run's flag rule would flag."""
+    from streetcd.run.worker import is_flagged
+
+    out = dict.fromkeys(
+        ("changed_views", "changed_flagged", "unchanged_views", "unchanged_flagged"), 0
+    )
+    for v in report.views:
+        pixels = [px for px, _ in v.regions]
+        flagged = is_flagged(sum(pixels) / max(v.n_pixels, 1), pixels, v.n_pixels, run)
+        which = "changed" if v.true_change else "unchanged"
+        out[f"{which}_views"] += 1
+        out[f"{which}_flagged"] += int(flagged)
+    return out
 
 
 def _run_sweep(

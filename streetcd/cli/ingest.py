@@ -68,6 +68,12 @@ from streetcd.errors import StreetcdError
     is_flag=True,
     help="Drop the points of files the store has but the archive no longer lists.",
 )
+@click.option(
+    "--recheck",
+    is_flag=True,
+    help="Read and check every chunk of the files already in the store; ingest again those "
+    "whose points are damaged (what `streetcd verify` reports).",
+)
 def ingest(
     archive: str,
     store: str,
@@ -77,6 +83,7 @@ def ingest(
     pipeline: str | None,
     chunk_points: int,
     prune: bool,
+    recheck: bool,
 ) -> None:
     """Stream an MLS archive (LAS/LAZ) into square ground tiles of a zarr tile store.
 
@@ -127,6 +134,7 @@ def ingest(
                 chunk_points=chunk_points,
                 prune=prune,
                 progress=on_progress,
+                recheck=recheck,
             )
     except StreetcdError as exc:
         raise click.ClickException(str(exc)) from None
@@ -187,4 +195,5 @@ def tiles(store: str, as_json: bool) -> None:
     Console().print(table)
     bad = {p: r for p, r in ts.files.items() if r["status"] == "failed"}
     for p, r in bad.items():
-        click.echo(f"failed file: {p}: {r['error']}")
+        error = r.get("error", "")
+        click.echo(f"failed file: {error}" if p in error else f"failed file: {p}: {error}")

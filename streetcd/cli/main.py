@@ -14,11 +14,16 @@ COMMANDS = [
     ("streetcd.cli.synth", "synth"),
     ("streetcd.cli.evaluate", "evaluate"),
     ("streetcd.cli.detect", "detect"),
+    ("streetcd.cli.check", "check"),
     ("streetcd.cli.run", "run"),
     ("streetcd.cli.run", "demo"),
     ("streetcd.cli.query", "query"),
+    ("streetcd.cli.review", "review"),
+    ("streetcd.cli.report", "report"),
+    ("streetcd.cli.serve", "serve"),
     ("streetcd.cli.ingest", "ingest"),
     ("streetcd.cli.ingest", "tiles"),
+    ("streetcd.cli.verify", "verify"),
 ]
 
 

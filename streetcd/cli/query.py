@@ -1,23 +1,31 @@
-"""``streetcd query``: list flagged views from a change index, as a table, JSON or GeoJSON.
+"""``streetcd query``: list the change objects of a change index (or, with ``--views``, its
+flagged views), as a table, JSON or GeoJSON.
 
 GeoJSON is written in WGS84 longitude/latitude (RFC 7946; reprojected with pyproj from the
 index's CRS), which QGIS and web maps read directly; ``--native-crs`` keeps the index's CRS
 and names it in the legacy ``crs`` member instead (QGIS honours it too).
+
+The index is opened read-only (SQLite ``mode=ro``): a query never creates or changes a file,
+and works on a read-only one. Numbers are checked before anything is read (a NaN, an
+infinity, a score outside [0, 1] is a one-line error).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import click
 
-from streetcd.errors import StreetcdError
+from streetcd.cli import index_option
+from streetcd.errors import InputError, StreetcdError
 
 
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
+    """``minx,miny,maxx,maxy`` as four finite numbers (min ≤ max); InputError otherwise."""
     if text is None:
         return None
     parts = text.split(",")
@@ -25,16 +33,29 @@ def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
         values: tuple[float, ...] = tuple(float(p) for p in parts)
     except ValueError:
         values = ()
-    if len(values) != 4:
-        raise click.BadParameter(f"{text!r}: expected minx,miny,maxx,maxy (four numbers)")
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"--bbox {text!r}: expected minx,miny,maxx,maxy (four finite numbers)")
+    if values[0] > values[2] or values[1] > values[3]:
+        raise InputError(f"--bbox {text!r}: minx must be <= maxx and miny <= maxy")
     return values[0], values[1], values[2], values[3]
 
 
+def _fraction(name: str, value: float | None) -> float | None:
+    if value is not None and not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise InputError(f"{name} {value!r} must be a finite number in [0, 1]")
+    return value
+
+
 def rows_as_json(rows: Sequence) -> list[dict]:
-    """Query rows as plain dicts (coordinates in the index's CRS)."""
+    """Query rows (flagged views) as plain dicts (coordinates in the index's CRS): ``id`` the
+    view's lasting key, ``image`` its file name, ``segment``, ``score``, and every field of
+    :class:`~streetcd.store.records.FlaggedRow`."""
     from dataclasses import asdict
 
-    return [asdict(r) for r in rows]
+    return [
+        {"id": r.view, "image": r.image, "segment": r.segment_id, "score": r.score, **asdict(r)}
+        for r in rows
+    ]
 
 
 def rows_as_table(rows: Sequence, title: str = "flagged views") -> str:
@@ -62,6 +83,23 @@ def segments_table(rows: Sequence, segments: Sequence) -> str:
     return "\n".join(lines)
 
 
+def objects_table(objects: Sequence[dict]) -> str:
+    """One line per change object: id, kind, class, confidence, views, nights, review."""
+    header = (
+        f"{'object':<16} {'segment':<24} {'kind':<8} {'class':<11} {'conf':>5} "
+        f"{'views':>7} {'first':<10} {'last':<10} review / transient"
+    )
+    lines = [f"change objects: {len(objects)}", header, "-" * len(header)]
+    for o in objects:
+        review = o["review"]["status"] if o["review"] else (o["transient"] or "awaiting")
+        lines.append(
+            f"{o['id']:<16} {o['segment']:<24} {o['kind']:<8} {o['class_name']:<11} "
+            f"{o['confidence']:>5.2f} {o['n_views']:>3}/{o['n_views'] + o['n_without']:<3} "
+            f"{o['first_seen']:<10} {o['last_seen']:<10} {review}"
+        )
+    return "\n".join(lines)
+
+
 def run_query(
     index: str | Path,
     *,
@@ -72,12 +110,65 @@ def run_query(
     fmt: str = "table",
     native_crs: bool = False,
     detected_since: str | None = None,
+    views: bool = False,
+    status: str | None = None,
+    kind: str | None = None,
+    transients: bool = False,
+    limit: int | None = None,
+    sort: str | None = None,
+    bbox_crs: str | None = None,
+    output: str | None = None,
 ) -> str:
-    """The text ``streetcd query`` prints."""
-    from streetcd.store.geojson import to_geojson
-    from streetcd.store.index import ChangeIndex
+    """The text ``streetcd query`` prints: change objects, or flagged views with ``views``.
 
-    with ChangeIndex(index, create=False) as idx:
+    For objects, ``min_score`` is the least confidence, ``since`` the last night seen;
+    ``status`` a :func:`~streetcd.store.objects.list_objects` status (``awaiting`` …);
+    transients are left out unless ``transients`` or ``status="transient"``.
+    """
+    from streetcd.store.geojson import objects_to_geojson, to_geojson
+    from streetcd.store.index import ChangeIndex
+    from streetcd.store.objects import list_objects
+
+    _fraction("--min-score", min_score)
+    # issue 18: --sort, --bbox-crs, csv / gpkg, GeoJSON only with a CRS (streetcd.report.export)
+    from streetcd.report import export
+
+    with ChangeIndex(index, readonly=True) as idx:
+        index_crs = idx.crs
+    if bbox is not None:
+        bbox = export.bbox_in_index_crs(bbox, bbox_crs, index_crs)
+    if fmt == "geojson":
+        export.check_geojson_crs(index_crs, native_crs)
+    if views and fmt in ("csv", "gpkg"):
+        raise InputError(f"--format {fmt} lists change objects: leave out --views")
+    if limit is not None and limit < 0:
+        raise InputError(f"--limit {limit} must be >= 0")
+    if not views:
+        if detected_since is not None:
+            raise InputError("--detected-since lists flagged views: add --views")
+        objects = list_objects(
+            index,
+            status=status,
+            segment=segment,
+            kind=kind,
+            bbox=bbox,
+            since=since,
+            min_confidence=min_score,
+        )
+        if not transients and status is None:
+            objects = [o for o in objects if o["transient"] is None]
+        objects = export.sort_objects(objects, sort) if sort else objects
+        objects = objects[:limit] if limit is not None else objects
+        with ChangeIndex(index, readonly=True) as idx:
+            crs = idx.crs
+        if fmt in ("csv", "gpkg"):
+            return export.export_objects(objects, crs, fmt, index, output)
+        if fmt == "table":
+            return objects_table(objects)
+        if fmt == "json":
+            return json.dumps({"crs": crs, "objects": objects}, indent=1)
+        return json.dumps(objects_to_geojson(objects, crs, wgs84=not native_crs))
+    with ChangeIndex(index, readonly=True) as idx:
         rows = idx.query(
             segment=segment,
             bbox=bbox,
@@ -85,40 +176,74 @@ def run_query(
             min_score=min_score,
             detected_since=detected_since,
         )
+        if sort:  # score: best first; time: latest capture (else detection) first
+            rows.sort(key=lambda r: (-r.score, r.view))
+            if sort == "time":
+                rows.sort(key=lambda r: r.captured_at or r.detected_at, reverse=True)
+        rows = rows[:limit] if limit is not None else rows
         segments = idx.segments(ids=sorted({r.segment_id for r in rows if r.segment_id}))
         if fmt == "table":
             return segments_table(rows, segments) + "\n\n" + rows_as_table(rows)
         if fmt == "json":
-            return json.dumps({"crs": idx.crs, "flagged": rows_as_json(rows)}, indent=1)
+            return json.dumps({"crs": idx.crs, "views": rows_as_json(rows)}, indent=1)
         return json.dumps(to_geojson(rows, segments, idx.crs, wgs84=not native_crs))
 
 
 @click.command("query")
+@index_option()
 @click.option(
-    "--index",
-    "index",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="The change index (SQLite) a run wrote.",
+    "--views",
+    "views",
+    is_flag=True,
+    help="List flagged views (one entry per view) instead of change objects.",
 )
 @click.option("--segment", help="Only this segment id.")
 @click.option(
     "--bbox",
-    help="minx,miny,maxx,maxy in the index's CRS: views with a change region meeting the box.",
+    help="minx,miny,maxx,maxy in the index's CRS: objects (views: a change region) meeting it.",
+)
+@click.option(
+    "--awaiting-review",
+    "awaiting",
+    is_flag=True,
+    help="Only change objects no one has reviewed yet (transients left out).",
+)
+@click.option(
+    "--status",
+    type=click.Choice(
+        ["awaiting", "transient", "confirmed", "false_alarm", "false-alarm", "fixed"]
+    ),
+    help="Only change objects with this review status (or awaiting review, or transients).",
+)
+@click.option("--kind", type=click.Choice(["added", "removed", "unknown"]), help="Only this kind.")
+@click.option("--transients", is_flag=True, help="Also list transients (cars, pedestrians).")
+@click.option("--limit", type=int, help="At most this many entries.")
+@click.option(
+    "--sort",
+    type=click.Choice(["score", "time"]),
+    help="score: most confident first; time: last seen (views: captured) latest first.",
+)
+@click.option(
+    "--bbox-crs",
+    help="The CRS of --bbox (EPSG:4326 for longitude/latitude); default the index's.",
 )
 @click.option(
     "--since",
-    help="ISO date or date-time (UTC if no zone): views whose image was taken since then (EXIF "
-    "date; the detection date where the image has none).",
+    help="ISO date or date-time (UTC if no zone): objects last seen since then; with --views, "
+    "views whose image was taken since then (EXIF date; the detection date where it has none).",
 )
 @click.option(
     "--detected-since", help="ISO date or date-time: views detected (published) since then."
 )
-@click.option("--min-score", type=float, help="Only views scoring at least this (0–1).")
+@click.option(
+    "--min-score",
+    type=float,
+    help="Only objects with at least this confidence, or views scoring at least this (0–1).",
+)
 @click.option(
     "--format",
     "fmt",
-    type=click.Choice(["table", "json", "geojson"]),
+    type=click.Choice(["table", "json", "geojson", "csv", "gpkg"]),
     default="table",
     show_default=True,
 )
@@ -130,6 +255,7 @@ def run_query(
 @click.option("-o", "--output", type=click.Path(dir_okay=False), help="Write to this file.")
 def query(
     index: str,
+    views: bool,
     segment: str | None,
     bbox: str | None,
     since: str | None,
@@ -138,11 +264,31 @@ def query(
     fmt: str,
     native_crs: bool,
     output: str | None,
+    awaiting: bool,
+    status: str | None,
+    kind: str | None,
+    transients: bool,
+    limit: int | None,
+    sort: str | None,
+    bbox_crs: str | None,
 ) -> None:
-    """List the flagged views of a change index, filtered by segment, box, date and score."""
+    """List the change objects of a change index (or its flagged views, --views), filtered by
+    segment, box, date, score and review status. Opens the index read-only."""
+    if awaiting:
+        if status not in (None, "awaiting"):
+            raise click.ClickException("--awaiting-review and --status are exclusive")
+        status = "awaiting"
     try:
         text = run_query(
             index,
+            views=views,
+            status=status,
+            kind=kind,
+            transients=transients,
+            limit=limit,
+            sort=sort,
+            bbox_crs=bbox_crs,
+            output=output,
             segment=segment,
             bbox=_bbox(bbox),
             since=since,
@@ -153,7 +299,9 @@ def query(
         )
     except StreetcdError as exc:
         raise click.ClickException(str(exc)) from None
-    if output:
+    if fmt == "gpkg":
+        click.echo(text, err=True)
+    elif output:
         Path(output).write_text(text + "\n", encoding="utf-8")
         click.echo(f"wrote {output}", err=True)
     else:

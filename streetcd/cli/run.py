@@ -5,6 +5,11 @@ Both run the Prefect flow in ``flows/nightly.py`` (installed as ``streetcd_flows
 a temporary local server for the run (about 20 s). Prefect's own log lines are shown from
 level WARNING (failed views, failed files) unless ``--verbose``; the progress bar and the
 summary come from here.
+
+``streetcd run`` checks its inputs first (:func:`streetcd.run.check.check_inputs`), before
+Prefect or Dask start, and exits with a code a cron job can act on (README, "Exit codes"):
+0 a good night, 2 a whole-input error (one line on stderr naming the file and field), 3 more
+views failed than ``--max-failed`` allows. Its summary JSON goes to ``OUT/runs/``.
 """
 
 from __future__ import annotations
@@ -70,7 +75,13 @@ def run_flow(*, verbose: bool = False, **kwargs: Any) -> dict[str, Any]:
                 bar.update(job, advance=len(payload), **counts)
 
         with progress_listener(on_progress):
-            return nightly(**kwargs)
+            state = nightly(**kwargs, return_state=True)
+    # A night with too many failed views ends Failed with its summary as data; a flow that
+    # raised carries the exception instead.
+    result = state.result(raise_on_failure=False)
+    if isinstance(result, BaseException):
+        raise result
+    return dict(result)
 
 
 def print_summary(summary: dict[str, Any], index: str) -> None:
@@ -84,7 +95,64 @@ def print_summary(summary: dict[str, Any], index: str) -> None:
         click.echo(f"  failed {view}: {error}")
     if s["n_lost"]:
         click.echo(f"  {s['n_lost']} views lost with their batches; run again to finish them")
+    still = s.get("still_failing") or []
+    if still:
+        since = min((when for _, _, when in still if when), default="an earlier run")
+        click.echo(
+            f"  {len(still)} views still failing since {since} (fix their inputs, or "
+            "--retry-failed):"
+        )
+        for view, error, _ in still[:10]:
+            click.echo(f"    {view}: {error}")
+        if len(still) > 10:
+            click.echo(f"    ... and {len(still) - 10} more (see the summary)")
     click.echo(f"index: {index}")
+    if s.get("summary_path"):
+        click.echo(f"summary: {s['summary_path']}")
+    if s.get("exit_code"):
+        click.echo(f"exit code {s['exit_code']}: more views failed than --max-failed allows")
+
+
+def parse_max_failed(text: str) -> float:
+    """``--max-failed``: a count ("5"), a fraction ("0.1") or a percentage ("10%")."""
+    try:
+        value = float(text[:-1]) / 100 if text.endswith("%") else float(text)
+    except ValueError:
+        value = -1.0
+    if not (0 <= value < 1 or (value.is_integer() and not text.endswith("%"))):
+        raise click.BadParameter(
+            f"{text!r}: a whole count (5), a fraction below 1 (0.1) or a percentage below "
+            "100 (10%)",
+            param_hint="--max-failed",
+        )
+    return value
+
+
+def input_error(exc: StreetcdError, out: str | None = None) -> click.exceptions.Exit:
+    """Print a whole-input error as one line on stderr (and record it in OUT/runs/ where
+    given); the Exit to raise, code 2."""
+    click.echo(f"Error: {exc}", err=True)
+    if out is not None:
+        from streetcd.run.summary import utc_now, write_input_error
+
+        write_input_error(out, exc, utc_now())
+    from streetcd.run.summary import EXIT_INPUT
+
+    return click.exceptions.Exit(EXIT_INPUT)
+
+
+def check_first(
+    images: str, poses: str, store: str, index: str, archive: str | None, config_file: str | None
+) -> None:
+    """``streetcd check`` before Prefect and Dask start: its notes to stderr (its warnings
+    come from the flow's own check, in Prefect's log); StreetcdError on a whole-input
+    error."""
+    from streetcd.config import load_config
+    from streetcd.run.check import check_inputs
+
+    report = check_inputs(images, poses, store, index, load_config(config_file), archive=archive)
+    for note in report.notes:
+        click.echo(f"note: {note}", err=True)
 
 
 def _default(path: str | None, out: str, name: str) -> str:
@@ -151,6 +219,11 @@ def _default(path: str | None, out: str, name: str) -> str:
     help="Views per Dask task (overrides the config's run.batch_size, default 4).",
 )
 @click.option("--retry-failed", is_flag=True, help="Process again views that failed before.")
+@click.option(
+    "--max-failed",
+    help="Failed views allowed before exit code 3: a count (5), a fraction (0.1) or a "
+    "percentage (10%). Default: the config's run.max_failed, 0 (any failure fails the night).",
+)
 @click.option("-v", "--verbose", is_flag=True, help="Show Prefect's INFO logs.")
 def run(
     images: str,
@@ -164,11 +237,16 @@ def run(
     config_file: str | None,
     batch_size: int | None,
     retry_failed: bool,
+    max_failed: str | None,
     verbose: bool,
 ) -> None:
-    """Run the nightly flow once: ingest, plan segments, detect on Dask, publish."""
+    """Run the nightly flow once: check the inputs, ingest, plan segments, detect on Dask,
+    publish. Exit codes: 0 a good night, 2 a whole-input error (nothing ran), 3 more views
+    failed than --max-failed allows (summary: OUT/runs/latest.json)."""
     index = _default(index, out, "change_index.sqlite")
+    limit = None if max_failed is None else parse_max_failed(max_failed)
     try:
+        check_first(images, poses, store, index, archive, config_file)
         summary = run_flow(
             images=images,
             poses=poses,
@@ -181,11 +259,13 @@ def run(
             config_file=config_file,
             batch_size=batch_size,
             retry_failed=retry_failed,
+            max_failed=limit,
             verbose=verbose,
         )
     except StreetcdError as exc:
-        raise click.ClickException(str(exc)) from None
+        raise input_error(exc, out) from None
     print_summary(summary, index)
+    raise click.exceptions.Exit(summary["exit_code"])
 
 
 @click.command("demo")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import click
 
+from streetcd.synth.kinds import PATHS, PRESET_HELP, PRESETS, SCHEMES, UNCLASSIFIED
+
 
 def _size(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, int] | None:
     if value is None:
@@ -23,7 +25,29 @@ def _size(ctx: click.Context, param: click.Parameter, value: str | None) -> tupl
     return w, h
 
 
-@click.command("synth")
+def _density(
+    ctx: click.Context, param: click.Parameter, value: str | None
+) -> tuple[float | None, float | None]:
+    """``F`` (a fraction of the points) or ``Sm`` (a point spacing at 10 m, metres)."""
+    if value is None:
+        return None, None
+    text = value.strip().lower()
+    try:
+        if text.endswith("m"):
+            return None, float(text[:-1])
+        return float(text), None
+    except ValueError:
+        raise click.BadParameter(
+            f"expected a fraction such as 0.1 or a spacing such as 0.3m, got {value!r}"
+        ) from None
+
+
+_KINDS_EPILOG = "\b\nKinds (--kind NAME; explicit options override the preset's):\n" + "\n".join(
+    f"  {name:<16} {PRESET_HELP[name]}" for name in PRESETS
+)
+
+
+@click.command("synth", epilog=_KINDS_EPILOG)
 @click.option(
     "--out",
     "out_dir",
@@ -69,6 +93,40 @@ def _size(ctx: click.Context, param: click.Parameter, value: str | None) -> tupl
     type=click.IntRange(min=1),
     help="Streets in the city (with --city).",
 )
+@click.option(
+    "--kind",
+    type=click.Choice(list(PRESETS)),
+    help="A named street kind (listed below). [default: default]",
+)
+@click.option(
+    "--path",
+    "camera_path",
+    type=click.Choice(list(PATHS)),
+    help="Camera path: today's strip (vehicle) or a pedestrian on the near (right) or far "
+    "(left) sidewalk. [default: vehicle]",
+)
+@click.option(
+    "--plain/--textured",
+    default=None,
+    help="Uniformly painted objects, some ~1 m in front of plain walls. [default: textured]",
+)
+@click.option(
+    "--colour/--no-colour",
+    default=None,
+    help="Write the cloud with RGB (LAS format 7) or without (format 6). [default: colour]",
+)
+@click.option(
+    "--density",
+    callback=_density,
+    help="Sparser cloud: a fraction of the points (0.1 keeps a tenth) or a point spacing at "
+    "10 m range such as 0.3m (a coarser scanner).",
+)
+@click.option(
+    "--class-codes",
+    help=f"Coding of the cloud's classes: {', '.join([*SCHEMES, UNCLASSIFIED])}, or a YAML "
+    "file with detect: classes:. Writes DIR/streetcd.yaml, the class map to pass as "
+    "--config. [default: streetcd's codes, no file]",
+)
 def synth(
     out_dir: Path,
     seed: int,
@@ -79,13 +137,34 @@ def synth(
     no_changes: bool,
     city: bool,
     n_streets: int,
+    kind: str | None,
+    camera_path: str | None,
+    plain: bool | None,
+    colour: bool | None,
+    density: tuple[float | None, float | None],
+    class_codes: str | None,
 ) -> None:
     """Generate an epoch-1 MLS archive, epoch-2 posed images and change ground truth."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from streetcd.errors import StreetcdError
     from streetcd.synth import generate_city, generate_street
+    from streetcd.synth.kinds import resolve_kind
 
+    fraction, spacing = density
+    try:
+        street_kind = resolve_kind(
+            kind,
+            path=camera_path,
+            plain=plain,
+            colour=colour,
+            density=fraction,
+            point_spacing_m=spacing,
+            class_codes=class_codes,
+        )
+    except StreetcdError as exc:
+        raise click.ClickException(str(exc)) from None
     console = Console()
     start = time.perf_counter()
     with Progress(
@@ -112,6 +191,7 @@ def synth(
                 length_m=length_m or 50.0,
                 changes=not no_changes,
                 progress=progress,
+                kind=street_kind,
             )
         else:
             manifest_path = generate_street(
@@ -123,6 +203,7 @@ def synth(
                 length_m=length_m or 150.0,
                 changes=not no_changes,
                 progress=progress,
+                kind=street_kind,
             )
     seconds = time.perf_counter() - start
     m = json.loads(manifest_path.read_text(encoding="utf-8"))
@@ -134,3 +215,5 @@ def synth(
         f"(seen in {changed_views} images), pose noise {m['pose_noise']['achieved_rms_px']:.2f} px "
         f"RMS, {seconds:.1f} s"
     )
+    if m.get("class_codes", {}).get("config"):
+        console.print(f"class map: pass --config {out_dir / m['class_codes']['config']}")

@@ -46,6 +46,7 @@ from streetcd.detect.correlate import (
 from streetcd.detect.graphcut import cut_changes, nearest_index, node_energy
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions
+from streetcd.detect.roles import role_codes, useless_classes
 from streetcd.detect.silhouette import near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
 from streetcd.detect.texture import texture_change
@@ -128,8 +129,9 @@ def view_surface_of(
         colours = cloud_colours(cloud, params, cache)
 
     def build() -> ViewSurface:
+        roles = role_codes(cloud.classification, params.classes)
         return surface_for_view(
-            cloud.xyz, cloud.classification, image, local.intrinsics, local.pose, params, colours()
+            cloud.xyz, roles, image, local.intrinsics, local.pose, params, colours()
         )[0]
 
     if cache is None:
@@ -194,6 +196,7 @@ def detect_view(
 
     image = _check_image(image, view)
     local = view.local(cloud.origin)
+    _check_classes(cloud, params, surfaces)
     colours = cloud_colours(cloud, params, surfaces)
     try:
         surf = view_surface_of(image, local, cloud, params, surfaces, colours)
@@ -368,6 +371,17 @@ def _texture(
     )
     weigh_low_classes(texture, surf.classes, params.correlate)
     return texture
+
+
+def _check_classes(cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None) -> None:
+    """Warn when the cloud's classes are of no use to the detector (its codes are not in the
+    class map, or it is unclassified): once per cache (a worker's run), or at every call
+    without one."""
+    if cache is not None and not cache.first_time("classes checked"):
+        return
+    why = useless_classes(cloud.classification, params.classes)
+    if why is not None:
+        log.warning(why)
 
 
 def _tell_no_colours(cache: SurfaceCache | None) -> None:

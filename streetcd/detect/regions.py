@@ -30,6 +30,10 @@ class Region:
     CRS); mean and 2nd/98th percentiles of the region's pixels (up to 20 000, evenly
     spread) back-projected through the depth raster; NaN when none has a surface.
     dominant_class : most frequent class code of the old cloud under the region (0 = none).
+    foot_class : the most frequent class of the old cloud in a band of image rows just below
+    the region (:data:`FOOT_BAND`), column by column: what the changed thing stands on or
+    in front of, e.g. the road under the flagged cabin of a car parked since the scan,
+    whose body hides the road (0 = none).
     """
 
     label: int
@@ -39,6 +43,26 @@ class Region:
     bbox_min: np.ndarray
     bbox_max: np.ndarray
     dominant_class: int
+    foot_class: int = 0
+
+
+FOOT_BAND = 0.03  # the band below a region that foot_class looks at, in image heights
+
+
+def _foot_class(rows: np.ndarray, cols: np.ndarray, classes: np.ndarray) -> int:
+    """Most frequent non-zero class in the FOOT_BAND rows below each column's lowest pixel
+    of a region (rows, cols (K,) int); 0 when there is none."""
+    h = classes.shape[0]
+    ucols, inv = np.unique(cols, return_inverse=True)
+    bottom = np.full(ucols.size, -1, dtype=np.int64)
+    np.maximum.at(bottom, inv, rows)
+    band = max(1, int(round(FOOT_BAND * h)))
+    rr = bottom[:, None] + np.arange(1, band + 1)[None, :]
+    cc = np.broadcast_to(ucols[:, None], rr.shape)
+    inside = rr < h
+    under = classes[rr[inside], cc[inside]]
+    under = under[under > 0]
+    return int(np.bincount(under).argmax()) if under.size else 0
 
 
 def changed_regions(
@@ -76,9 +100,10 @@ def changed_regions(
             centroid = pts.mean(axis=0)
             lo, hi = np.percentile(pts, BBOX_PERCENTILES, axis=0)
             dominant = int(np.bincount(classes[rows[has], cols[has]], minlength=256).argmax())
+            foot_class = _foot_class(rows, cols, classes)
         else:
             centroid = lo = hi = np.full(3, np.nan)
-            dominant = 0
+            dominant = foot_class = 0
         regions.append(
             Region(
                 label=k,
@@ -88,6 +113,7 @@ def changed_regions(
                 bbox_min=lo,
                 bbox_max=hi,
                 dominant_class=dominant,
+                foot_class=foot_class,
             )
         )
     return labels, regions

@@ -567,7 +567,12 @@ def evaluate_case(
     pixels: list[dict[int, tuple[int, int]]] = []
     for cv in todo:
         v = cv.view
-        nbs = select_neighbours(v, all_views, n=params.correlate.n_neighbours)
+        nbs = select_neighbours(
+            v,
+            all_views,
+            n=params.correlate.n_neighbours,
+            min_parallax_px=params.correlate.min_parallax_px,
+        )
         keep = {v.name, *(n.name for n in nbs)}
         for name in list(cache):
             if name not in keep:

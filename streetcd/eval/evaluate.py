@@ -104,12 +104,17 @@ def load_scene(root: str | Path) -> Scene:
 
 @dataclass(frozen=True)
 class ViewOutcome:
-    """Scores of one view: the method, each baseline, and the detector's time."""
+    """Scores of one view: the method, each baseline, and the detector's time; whether the
+    truth has a change outside dontcare, and the detection's regions as (pixels, score) of an
+    image of ``n_pixels``, for the run's flag rule (:func:`streetcd.run.worker.is_flagged`)."""
 
     name: str
     score: ViewScore
     baselines: dict[str, ViewScore]
     seconds: float
+    true_change: bool = False
+    regions: tuple[tuple[int, float], ...] = ()
+    n_pixels: int = 0
 
 
 @dataclass(frozen=True)
@@ -140,7 +145,14 @@ class Report:
             "seconds_per_view": self.seconds_per_view,
             "baselines": {k: s.as_dict() for k, s in self.baselines.items()},
             "per_view": [
-                {"name": v.name, **summarize([v.score]).as_dict(), "seconds": v.seconds}
+                {
+                    "name": v.name,
+                    **summarize([v.score]).as_dict(),
+                    "seconds": v.seconds,
+                    "true_change": v.true_change,
+                    "regions": [list(r) for r in v.regions],
+                    "n_pixels": v.n_pixels,
+                }
                 for v in self.views
             ],
             "params": self.params,
@@ -208,7 +220,11 @@ def evaluate_view(
             energy = node_energy(result.raw_change, params.graphcut.a, params.graphcut.b)
             mask = regraphcut(image, result, params, params.graphcut, energy=energy, refine=False)
             extra["paper_method"] = _score(mask, truth, result.classes)
-    return ViewOutcome(view.name, score, extra, seconds)
+    cared = truth["mask"].astype(bool) & ~truth["dontcare"].astype(bool)
+    regions = tuple((int(r.pixels), round(float(r.score), 4)) for r in result.regions)
+    return ViewOutcome(
+        view.name, score, extra, seconds, bool(cared.any()), regions, int(result.mask.size)
+    )
 
 
 def regraphcut(
@@ -271,7 +287,10 @@ def evaluate_scene(
     outcomes = []
     for v in views:
         nbs = select_neighbours(
-            v, [c for c in scene.views if c.name != v.name], n=params.correlate.n_neighbours
+            v,
+            [c for c in scene.views if c.name != v.name],
+            n=params.correlate.n_neighbours,
+            min_parallax_px=params.correlate.min_parallax_px,
         )
         keep = {v.name, *(n.name for n in nbs)}
         for name in list(cache):  # views come in trajectory order; drop what left the window

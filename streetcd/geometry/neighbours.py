@@ -12,11 +12,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from streetcd.config import CorrelateParams, scale_px
 from streetcd.geometry.camera import backproject, distort
 from streetcd.types import View
 
 DEPTHS_M = (5.0, 10.0, 20.0, 40.0)  # street objects lie 10–30 m away (paper §4)
 GRID = 12  # sample rays per image side
+PARALLAX_DEPTH_M = 20.0  # the parallax of a neighbour is judged at this depth (10–30 m above)
+MIN_PARALLAX_PX = CorrelateParams.min_parallax_px  # px at REFERENCE_WIDTH_PX (the config's)
 
 
 def frustum_samples(
@@ -86,8 +89,19 @@ def select_neighbours(
     *,
     max_distance_m: float = 2 * DEPTHS_M[-1],
     depths_m: Sequence[float] = DEPTHS_M,
+    min_parallax_px: float = MIN_PARALLAX_PX,
 ) -> list[View]:
-    """The ``n`` candidates whose frustum overlaps ``view``'s most (overlap > 0).
+    """The ``n`` candidates with the best overlap and parallax (score > 0).
+
+    A candidate's score is its frustum overlap with ``view`` (:func:`overlaps`) times
+    ``min(1, parallax / min_parallax_px)``, where ``parallax = f · b / PARALLAX_DEPTH_M`` px is
+    how far a point at the street's typical depth moves between the two images (``f`` the
+    view's focal length in px, ``b`` the distance between the centres, m). Without parallax
+    every pixel is photo-consistent whatever the depth (eq. 4 warps it onto itself): a camera
+    that did not move (a car at a light, the same camera a second later) overlaps best and
+    proves nothing, so it scores 0 and is never chosen. ``min_parallax_px`` is given at
+    :data:`streetcd.config.REFERENCE_WIDTH_PX` and scaled with the view's width; 0 ranks by
+    overlap alone (the paper's choice).
 
     ``view`` itself (same name) is never chosen; candidates farther than ``max_distance_m``
     are skipped unseen. Ties are broken by the distance between the centres, then by name,
@@ -101,7 +115,7 @@ def select_neighbours(
         if dist <= max_distance_m:
             near.append(cand)
             dists.append(dist)
-    shares = overlaps(view, near, depths_m)
+    shares = overlaps(view, near, depths_m) * _parallax_weights(view, dists, min_parallax_px)
     scored = [
         (-round(float(share), 9), dist, cand.name, cand)
         for share, dist, cand in zip(shares, dists, near, strict=True)
@@ -109,3 +123,15 @@ def select_neighbours(
     ]
     scored.sort(key=lambda s: s[:3])
     return [s[3] for s in scored[:n]]
+
+
+def _parallax_weights(view: View, dists_m: Sequence[float], min_parallax_px: float) -> np.ndarray:
+    """(len(dists_m),) in [0, 1]: ``min(1, parallax / min_parallax_px)`` of
+    :func:`select_neighbours` for candidates at ``dists_m`` metres from ``view``."""
+    dists = np.asarray(dists_m, dtype=np.float64)
+    if min_parallax_px <= 0:
+        return np.ones(len(dists))
+    intr = view.intrinsics
+    focal = 0.5 * (intr.fx + intr.fy)
+    parallax = focal * dists / PARALLAX_DEPTH_M
+    return np.minimum(1.0, parallax / scale_px(min_parallax_px, intr.width, minimum=0.0))

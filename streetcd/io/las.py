@@ -39,7 +39,10 @@ def header_crs(header: laspy.LasHeader, path: Path) -> str | None:
     try:
         parsed = header.parse_crs()
     except Exception as exc:  # laspy raises several types for a malformed CRS VLR
-        raise InputError(f"{path}: field 'CRS VLR' cannot be parsed: {exc}") from None
+        # pyproj quotes the whole WKT, line breaks and all: one line, cut short
+        text = " ".join(str(exc).split())
+        text = text if len(text) <= 300 else f"{text[:150]} … {text[-150:]}"
+        raise InputError(f"{path}: field 'CRS VLR' cannot be parsed: {text}") from None
     return None if parsed is None else crs_string(parsed)
 
 
@@ -55,12 +58,14 @@ def write_las(
     crs: str | None = None,
     scale: float = 0.001,
     creation_date: date | None = None,
+    point_format: int = 7,
 ) -> Path:
     """Write points to ``path`` (``.laz`` compresses with lazrs).
 
     xyz : (N, 3) float64 metres, local coordinates relative to ``origin`` (CRS metres);
         without ``origin`` they are CRS coordinates.
     creation_date : the header's creation day (default today); fix it for reproducible files.
+    point_format : LAS 1.4 point format, 7 (with RGB) or 6 (without: ``rgb`` must be None).
     """
     import laspy  # here, not at the top: Dask workers crop from the tile store without it
 
@@ -69,7 +74,9 @@ def write_las(
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.all(np.isfinite(xyz)):
         raise InputError(f"{path}: xyz must be finite (N, 3), got shape {xyz.shape}")
-    header = laspy.LasHeader(point_format=7, version="1.4")
+    if point_format not in (6, 7) or (point_format == 6 and rgb is not None):
+        raise InputError(f"{path}: point_format = {point_format} must be 7, or 6 without rgb")
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
     header.scales = np.array([scale, scale, scale])
     if creation_date is not None:
         header.creation_date = creation_date
@@ -164,17 +171,29 @@ class LasInfo:
     scales: np.ndarray
 
 
+# Header values no real survey has: a CRS coordinate beyond ±1e8 m (2.5 times the Earth's
+# circumference: every projected CRS, false easting and zone prefix included, stays well
+# inside; float64 keeps 15 nm there), a scale of zero, below zero or coarser than 1 m.
+MAX_COORD_M = 1e8
+MAX_SCALE_M = 1.0
+_AXES = "xyz"
+
+
 def las_info(path: str | Path) -> LasInfo:
-    """Read the header of ``path``; MissingInputError / CorruptFileError name the file."""
+    """Read the header of ``path`` and check that it can be real (:func:`check_header`);
+    MissingInputError / CorruptFileError / InputError name the file and the field."""
     import laspy
 
     path = Path(path)
     if not path.exists():
         raise MissingInputError(f"point cloud file not found: {path}")
+    if not path.is_file():
+        raise InputError(f"{path}: is not a file (a LAS/LAZ archive lists files)")
+    _check_layout(path)
     try:
         with laspy.open(path) as reader:
             h = reader.header
-            return LasInfo(
+            info = LasInfo(
                 path,
                 int(h.point_count),
                 header_crs(h, path),
@@ -183,10 +202,118 @@ def las_info(path: str | Path) -> LasInfo:
                 np.asarray(h.offsets, dtype=np.float64),
                 np.asarray(h.scales, dtype=np.float64),
             )
+            compressed = bool(h.are_points_compressed)
+            record = int(h.point_format.size)
+            start = int(h.offset_to_point_data)
+            minor = int(h.version.minor)
     except InputError:
         raise
-    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
-        raise CorruptFileError(f"{path}: cannot be read as LAS/LAZ: {exc}") from None
+    except Exception as exc:  # laspy/lazrs raise many types for a malformed header
+        raise CorruptFileError(
+            f"{path}: cannot be read as LAS/LAZ: {type(exc).__name__}: {exc}"
+        ) from None
+    check_header(info)
+    _check_point_count(path, info.point_count, minor, None if compressed else (start, record))
+    return info
+
+
+def _check_layout(path: Path) -> None:
+    """CorruptFileError naming the field where the header's layout fields (LAS 1.0–1.4
+    public header block) point outside the file. laspy trusts them: a header claiming
+    2 billion VLRs made it loop (and grow) for ever, one bit flip in ``number_of_vlrs``."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(375)
+    if len(head) < 227 or head[:4] != b"LASF":
+        return  # laspy names what is wrong with it (signature, short header)
+
+    def u(at: int, n: int) -> int:
+        return int.from_bytes(head[at : at + n], "little")
+
+    header_size, start, n_vlrs = u(94, 2), u(96, 4), u(100, 4)
+    if not header_size <= start <= size:
+        raise CorruptFileError(
+            f"{path}: header field 'offset_to_point_data' is {start}: not between the header "
+            f"size ({header_size}) and the file size ({size} bytes)"
+        )
+    if n_vlrs * 54 > start - header_size:  # a VLR header alone is 54 bytes
+        raise CorruptFileError(
+            f"{path}: header field 'number_of_vlrs' is {n_vlrs}: more than the "
+            f"{start - header_size} bytes before the points can hold"
+        )
+    if head[25] >= 4 and len(head) >= 247:
+        evlr_start, n_evlrs = u(235, 8), u(243, 4)
+        if n_evlrs and (evlr_start > size or n_evlrs * 60 > size - evlr_start):
+            raise CorruptFileError(
+                f"{path}: header field 'number_of_evlrs' is {n_evlrs} from byte {evlr_start}: "
+                f"more than the file ({size} bytes) holds"
+            )
+
+
+def check_header(info: LasInfo) -> None:
+    """InputError, naming the file and the header field, where the scales, offsets or
+    bounds of ``info`` cannot be those of a real survey (see ``MAX_COORD_M``)."""
+    for k, axis in enumerate(_AXES):
+        scale = info.scales[k]
+        if not (np.isfinite(scale) and 0 < scale <= MAX_SCALE_M):
+            raise InputError(
+                f"{info.path}: header field '{axis} scale' is {scale}: it must be a number of "
+                f"metres > 0 and <= {MAX_SCALE_M:g} (e.g. 0.001)"
+            )
+        for name, value in ((f"{axis} offset", info.offsets[k]),):
+            if not (np.isfinite(value) and abs(value) <= MAX_COORD_M):
+                raise InputError(
+                    f"{info.path}: header field '{name}' is {value}: no CRS has it (a finite "
+                    f"number of metres, |value| <= {MAX_COORD_M:g}); coordinates would lose "
+                    "precision"
+                )
+        if info.point_count == 0:
+            continue
+        lo, hi = info.mins[k], info.maxs[k]
+        for name, value in ((f"min {axis}", lo), (f"max {axis}", hi)):
+            if not (np.isfinite(value) and abs(value) <= MAX_COORD_M):
+                raise InputError(
+                    f"{info.path}: header field '{name}' is {value}: no CRS has it (a finite "
+                    f"number of metres, |value| <= {MAX_COORD_M:g})"
+                )
+        if lo > hi:
+            raise InputError(
+                f"{info.path}: header field 'min {axis}' ({lo}) is above 'max {axis}' ({hi})"
+            )
+
+
+def _check_point_count(path: Path, count: int, minor: int, layout: tuple[int, int] | None) -> None:
+    """CorruptFileError naming the header's count field where an uncompressed file
+    (``layout``: offset to point data, bytes per point) is too short for the points its
+    header promises, or a LAS 1.4 header's two counts disagree. (A LAZ file's count is
+    checked as it is read: its size does not tell.)"""
+    field = "point_count" if minor >= 4 else "legacy_point_count"
+    with open(path, "rb") as fh:
+        head = fh.read(247 + 8)
+    if minor >= 4 and len(head) >= 111:
+        legacy = int.from_bytes(head[107:111], "little")
+        if legacy not in (0, count):
+            raise CorruptFileError(
+                f"{path}: header field 'legacy_point_count' is {legacy}, "
+                f"'point_count' is {count}: they must agree (or legacy be 0)"
+            )
+    if layout is not None:
+        start, record = layout
+        size = path.stat().st_size
+        holds = max(size - start, 0) // record if record else 0
+        if count > holds:
+            raise CorruptFileError(
+                f"{path}: header field '{field}' promises {count} points, the file holds "
+                f"{holds} ({size} bytes, {record} per point from byte {start})"
+            )
+
+
+def point_count_field(path: Path) -> str:
+    """The header field that holds the point count of ``path``: ``point_count`` (LAS 1.4)
+    or ``legacy_point_count`` (LAS 1.0–1.3)."""
+    with open(path, "rb") as fh:
+        head = fh.read(26)
+    return "point_count" if len(head) == 26 and head[25] >= 4 else "legacy_point_count"
 
 
 def iter_las_chunks(
@@ -206,11 +333,13 @@ def iter_las_chunks(
         raise InputError(f"chunk_points must be >= 1, got {chunk_points}")
     if not path.exists():
         raise MissingInputError(f"point cloud file not found: {path}")
+    info = las_info(path)  # the header checked: scales, offsets, bounds, count
     seen = 0
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     try:
         with laspy.open(path) as reader:
             header = reader.header
-            crs = header_crs(header, path)
+            crs = info.crs
             org = np.asarray(header.offsets if origin is None else origin, dtype=np.float64)
             for points in reader.chunk_iterator(chunk_points):
                 if len(points) == 0:
@@ -220,19 +349,48 @@ def iter_las_chunks(
                 if not np.all(np.isfinite(cloud.xyz)):
                     raise InputError(
                         f"{path}: field 'X/Y/Z' has non-finite coordinates "
-                        f"(header scales {list(header.scales)}, "
-                        f"offsets {list(header.offsets)})"
+                        f"(header scales {[float(v) for v in header.scales]}, "
+                        f"offsets {[float(v) for v in header.offsets]})"
                     )
+                lo = np.minimum(lo, cloud.xyz.min(axis=0) + org)
+                hi = np.maximum(hi, cloud.xyz.max(axis=0) + org)
+                _check_bounds(info, lo, hi, final=False)
                 yield cloud
             expected = int(header.point_count)
     except InputError:
         raise
-    except (laspy.errors.LaspyException, OSError, ValueError, RuntimeError) as exc:
+    except Exception as exc:  # laspy/lazrs raise many types for a damaged file
         raise CorruptFileError(
-            f"{path}: cannot be read as LAS/LAZ after {seen} points: {exc}"
+            f"{path}: truncated or damaged: read {seen} of the {info.point_count} points its "
+            f"header field '{point_count_field(path)}' promises ({type(exc).__name__}: {exc})"
         ) from None
     if seen != expected:
-        raise CorruptFileError(f"{path}: truncated: header says {expected} points, read {seen}")
+        raise CorruptFileError(
+            f"{path}: truncated: header field '{point_count_field(path)}' says {expected} "
+            f"points, the file holds {seen}"
+        )
+    if seen:
+        _check_bounds(info, lo, hi, final=True)
+
+
+def _check_bounds(info: LasInfo, lo: np.ndarray, hi: np.ndarray, final: bool) -> None:
+    """InputError naming the header field where the points read so far (``lo``, ``hi``,
+    (3,) CRS metres) lie outside the header's bounds, or, once all are read (``final``),
+    where the bounds are far wider than the points. Slack: 1 m or 1 % of the box, for
+    writers that round or pad the box."""
+    slack = np.maximum(1.0, 0.01 * (info.maxs - info.mins))
+    for k, axis in enumerate(_AXES):
+        # how far the points go beyond the header's box (> 0: outside it) at each end
+        for name, header, points, beyond in (
+            (f"min {axis}", info.mins[k], lo[k], info.mins[k] - lo[k]),
+            (f"max {axis}", info.maxs[k], hi[k], hi[k] - info.maxs[k]),
+        ):
+            if beyond > slack[k] or (final and -beyond > slack[k]):
+                verb = "reach" if beyond > 0 else "only reach"
+                raise InputError(
+                    f"{info.path}: header field '{name}' is {header:.3f} but the points "
+                    f"{verb} {points:.3f}: the header disagrees with its points"
+                )
 
 
 def load_clouds(paths: Sequence[str | Path]) -> PointCloud:

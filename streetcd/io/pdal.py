@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from streetcd.errors import CorruptFileError, InputError, MissingInputError, OptionalDependencyError
-from streetcd.io.las import LasInfo, crs_string
+from streetcd.io.las import LasInfo, check_header, crs_string
 from streetcd.types import PointCloud
 
 INSTALL_HINT = (
@@ -89,7 +89,7 @@ class PdalReader:
         mins = np.array([b.get("minx", 0.0), b.get("miny", 0.0), b.get("minz", 0.0)], float)
         maxs = np.array([b.get("maxx", 0.0), b.get("maxy", 0.0), b.get("maxz", 0.0)], float)
         wkt = (qi.get("srs") or {}).get("wkt") or None
-        return LasInfo(
+        info = LasInfo(
             path,
             int(qi.get("num_points", 0)),
             crs_string(wkt) if wkt else None,
@@ -98,6 +98,8 @@ class PdalReader:
             np.zeros(3),
             np.full(3, 0.001),
         )
+        check_header(info)  # bounds that cannot be real fail the file, as with laspy
+        return info
 
     def chunks(self, path: Path, chunk_points: int) -> Iterator[PointCloud]:
         """Stream PDAL's point views in chunks (CRS coordinates, float64)."""

@@ -1,8 +1,9 @@
 """A night, start to end: the one sequence that ``streetcd run``, the tests and the Prefect
 flow all run.
 
-    lock the index → (ingest new MLS files) → plan → register the plan → hand the batches to
-    the Dask workers → publish each segment as its batches end → close the run
+    lock the index → check the inputs → (ingest new MLS files) → plan → register the plan →
+    hand the batches to the Dask workers → publish each segment as its batches end → close the
+    run → judge the night and write its summary JSON
 
 :func:`run_night` does it. How each step is run and reported is the :class:`Tracker`'s: the
 plain one here calls the steps and logs to ``streetcd.run``; the Prefect flow
@@ -15,24 +16,37 @@ One run at a time per index: the run holds the index's run lock (``<index>.lock`
 to end, and a second run on the same index fails at once, naming the holder. The Dask cluster
 (a LocalCluster of ``run.workers`` processes, or the scheduler given) starts while the run is
 planned.
+
+**The night's verdict.** A night is good (exit code 0) when no more of its views failed than
+``run.max_failed`` allows, counting the views that failed tonight, those lost with their
+batches, and those of tonight's inputs that failed in an earlier run and were skipped
+("still failing since <date>": they stay counted until retried with ``--retry-failed`` or
+fixed); else it exits 3, and the Prefect flow ends Failed. Inputs that no view could
+succeed with raise before the cluster starts (``streetcd run`` exits 2). Every run writes its
+summary as JSON to ``<out>/runs/<run id>.json`` and ``<out>/runs/latest.json``
+(:mod:`streetcd.run.summary`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from distributed import Client
 
 from streetcd.config import Config
+from streetcd.errors import StreetcdError
+from streetcd.run.check import CheckReport, check_inputs
 from streetcd.run.cluster import dask_client_soon
 from streetcd.run.dispatch import Dispatcher
-from streetcd.run.plan import Plan, plan_run
+from streetcd.run.plan import Plan, file_hash, image_name, lasting_key, plan_run
 from streetcd.run.publish import (
     RunSummary,
     finish_run,
@@ -41,7 +55,15 @@ from streetcd.run.publish import (
     publish_segment,
     register_plan,
 )
+from streetcd.run.summary import (
+    judge,
+    still_failing_line,
+    summary_json,
+    write_input_error,
+    write_summary,
+)
 from streetcd.run.worker import detect_batch
+from streetcd.store.index import ChangeIndex, failed_views, utc_now
 from streetcd.store.ingest import ingest
 from streetcd.store.locks import run_lock
 
@@ -119,29 +141,108 @@ def run_night(
     tracker = tracker or PlainTracker()
     log = tracker.logger()
     t0 = time.perf_counter()
-    with run_lock(inputs.index, holder), _client_soon(client, scheduler, config) as starting:
-        if inputs.archive:
-            # files are read on the cluster (the store is on storage its workers share)
-            tracker.step("ingest-archive", ingest_archive, inputs, starting.result(), log)
-        plan = tracker.step("plan-segments", plan_night, inputs, config, retry_failed, log)
-        summary = new_summary(plan)
-        summary.plan_s = time.perf_counter() - t0
-        segments = plan.segments_todo
-        if segments:
-            dask = starting.result()
-            summary.wait_s = time.perf_counter() - t0 - summary.plan_s
-            with contextlib.closing(Dispatcher(dask, plan, detect_batch).start()) as dispatcher:
-                _log_cluster(log, dask)
-
-                def publish(segment_id: str) -> RunSummary:
-                    return _publish(plan, dispatcher, segment_id, log)
-
-                for part in tracker.each("publish-segment", publish, segments):
-                    summary.merge(part)
-        finish_run(plan, summary)
-        summary.wall_s = time.perf_counter() - t0
+    started = utc_now()
+    try:
+        summary = _night(inputs, config, scheduler, client, retry_failed, tracker, holder, log)
+    except StreetcdError as exc:  # the night did not run (or not to its end): say why, stop
+        write_input_error(inputs.out, exc, started)
+        raise
+    summary.wall_s = time.perf_counter() - t0
+    judge(summary, config.run.max_failed)
+    paths = {k: v and str(Path(v).resolve()) for k, v in dataclasses.asdict(inputs).items()}
+    data = summary_json(summary, paths, started, config.run.max_failed)
+    summary.summary_path = write_summary(inputs.out, data)
     _log_summary(log, summary)
     return summary
+
+
+def _night(
+    inputs: NightInputs,
+    config: Config,
+    scheduler: str | None,
+    client: Client | None,
+    retry_failed: bool,
+    tracker: Tracker,
+    holder: str,
+    log: Logger,
+) -> RunSummary:
+    """:func:`run_night` up to its verdict."""
+    t0 = time.perf_counter()
+    with run_lock(inputs.index, holder):
+        report = None
+        if not inputs.archive:  # else the store may not be there before the ingest
+            report = tracker.step("check-inputs", check_night, inputs, config, log)
+        with _client_soon(client, scheduler, config) as starting:
+            if inputs.archive:
+                # files are read on the cluster (the store is on storage its workers share)
+                tracker.step("ingest-archive", ingest_archive, inputs, starting.result(), log)
+                report = tracker.step("check-inputs", check_night, inputs, config, log)
+            assert report is not None
+            plan = tracker.step("plan-segments", plan_night, inputs, config, retry_failed, log)
+            summary = new_summary(plan)
+            summary.notes = [*report.notes, *(f"warning: {w}" for w in report.warnings)]
+            summary.plan_s = time.perf_counter() - t0
+            segments = plan.segments_todo
+            if segments:
+                dask = starting.result()
+                summary.wait_s = time.perf_counter() - t0 - summary.plan_s
+                with contextlib.closing(Dispatcher(dask, plan, detect_batch).start()) as dispatcher:
+                    _log_cluster(log, dask)
+
+                    def publish(segment_id: str) -> RunSummary:
+                        return _publish(plan, dispatcher, segment_id, log)
+
+                    for part in tracker.each("publish-segment", publish, segments):
+                        summary.merge(part)
+            finish_run(plan, summary, config.detect.classes)
+        summary.still_failing = still_failing(inputs, report, plan.run_id)
+    return summary
+
+
+def check_night(inputs: NightInputs, config: Config, log: Logger) -> CheckReport:
+    """:func:`~streetcd.run.check.check_inputs` on the night's inputs (the run holds the
+    index's lock, so that is not checked); its notes and warnings go to the log."""
+    report = check_inputs(
+        inputs.images, inputs.poses, inputs.store, inputs.index, config, check_lock=False
+    )
+    for note in report.notes:
+        log.info("check: %s", note)
+    for warning in report.warnings:
+        log.warning("check: %s", warning)
+    return report
+
+
+def still_failing(
+    inputs: NightInputs, report: CheckReport, run_id: str
+) -> list[tuple[str, str, str]]:
+    """(view, error, when it failed) of tonight's views that failed in an earlier run and
+    were not tried again tonight. Tonight's: a view whose image name is in tonight's images
+    folder or pose file, and whose index key is tonight's (a lasting key names the image's
+    content: the same name with other bytes is another view, and a fixed image a new one)."""
+    names = report.image_names | report.pose_names
+    poses = Path(inputs.poses).resolve()
+    images = Path(inputs.images)
+    with ChangeIndex(inputs.index, create=False) as idx:
+        rows = failed_views(idx)
+    out = []
+    for key, error, failed_run, when in rows:
+        name = image_name(key)
+        if failed_run == run_id or name not in names:
+            continue
+        if key != name and key not in _keys_tonight(name, images, poses):
+            continue
+        out.append((key, error, when or ""))
+    return out
+
+
+def _keys_tonight(name: str, images: Path, poses: Path) -> set[str]:
+    """The index keys a view ``name`` can have tonight (:func:`~streetcd.run.plan.lasting_key`):
+    by its image's content, or by the pose file where the image is missing."""
+    keys = {lasting_key(name, None, poses)}
+    path = images / name
+    if path.is_file():
+        keys.add(lasting_key(name, file_hash(path)))
+    return keys
 
 
 @contextlib.contextmanager
@@ -247,3 +348,6 @@ def _log_summary(log: Logger, summary: RunSummary) -> None:
             "%d views were lost with their batches (see the log above); the next run retries them",
             summary.n_lost,
         )
+    if summary.still_failing:
+        log.warning("%s", still_failing_line(summary))
+    log.info("summary: %s (exit code %d)", summary.summary_path, summary.exit_code)

@@ -11,10 +11,12 @@ image, a bad pose row) becomes failed records in the plan, for the publisher to 
 from __future__ import annotations
 
 import hashlib
+import json
+import os
 import time
 import uuid
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -34,12 +36,14 @@ from streetcd.types import View
 
 @dataclass(frozen=True)
 class ViewTask:
-    """One view's work: the view (pose in the CRS, image path), its neighbours, its hash."""
+    """One view's work: the view (pose in the CRS, image path), its neighbours, its hash,
+    and its lasting key in the index (:func:`lasting_key`; the name when not given)."""
 
     view: View
     neighbours: tuple[View, ...]
     segment_id: str
     input_hash: str
+    key: str = ""
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,8 @@ class Batch:
         detector's surface cache, from that one cloud (:class:`streetcd.run.worker.WorkerRuntime`).
     store_generation : the tile store's generation at planning, so a long-lived worker
         never reads a store it opened before the last ingest.
+    store_id : :func:`store_identity` of the tile store at planning (a store rebuilt at the
+        same path starts its generations again; this tells it apart), for the workers' caches.
     part : set on the single-view batches a batch was cut into (the end of a worker's
         queue, :func:`streetcd.run.dispatch.split_tail`): the view's position in the batch.
     """
@@ -66,6 +72,7 @@ class Batch:
     crop_views: tuple[View, ...] = ()
     store_generation: int | None = None
     part: int | None = None
+    store_id: str | None = None
 
     @property
     def key(self) -> str:
@@ -130,6 +137,13 @@ def file_hash(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()[:16]
 
 
+def store_identity(store: TileStore) -> str:
+    """Hash of the store's committed root record: its settings, generation and every source
+    file's key (path, size, mtime), so it changes with any ingest and tells apart two stores
+    built one after the other at the same path."""
+    return hash_text(json.dumps(store.index, sort_keys=True, default=str))
+
+
 def tiles_fingerprint(store: TileStore, center: np.ndarray, radius_m: float) -> str:
     """Hash of the tiles (id, fragments, counts) within ``radius_m`` of ``center`` (CRS).
 
@@ -163,7 +177,7 @@ def plan_run(
     run_id = run_id or time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:6]
     # Workers run elsewhere (another cwd, another machine with the same mounts): absolute paths.
     images, poses, store, out = (Path(p).resolve() for p in (images, poses, store, out))
-    files = list_images(images)
+    files, refused = readable_images(list_images(images), images)
     bad_rows: list[tuple[str, str]] = []
     pose_set = read_poses(poses, image_dir=images, bad_rows=bad_rows)
     tile_store = TileStore.open(store)
@@ -173,8 +187,13 @@ def plan_run(
         raise CRSMismatchError(f"poses {poses} are in {crs}, tile store {store} in {store_crs}")
     crs = crs or store_crs
     phash = config.results_hash()
-    views, failed = _match_images(pose_set.views, bad_rows, files, images, poses, phash)
-    segments = plan_segments(views, config.run.segments, config.detect.correlate.n_neighbours)
+    views, failed = _match_images(pose_set.views, bad_rows, files, images, poses, phash, refused)
+    segments = plan_segments(
+        views,
+        config.run.segments,
+        config.detect.correlate.n_neighbours,
+        min_parallax_px=config.detect.correlate.min_parallax_px,
+    )
     known = _known_views(Path(index))
 
     def skip(name: str, input_hash: str) -> bool:
@@ -219,15 +238,25 @@ def _match_images(
     images: Path,
     poses: Path,
     phash: str,
+    refused: dict[str, tuple[str, Path | None]] | None = None,
 ) -> tuple[list[View], list[ViewRecord]]:
     """The views with a pose and an image, and a failed record for every image or pose
-    without its other half, every malformed pose row and every view posed twice."""
+    without its other half, every malformed pose row, every view posed twice and every image
+    that is ``refused`` ({name: (why, path to hash or None)}, :func:`readable_images`).
+
+    A pose names its image by its file name in ``images`` exactly: the view's image is that
+    listed file, never a path built from the name (a name is checked by the pose reader,
+    :func:`streetcd.io.poses.image_name_problem`, but matching only listed files is what keeps
+    every read inside ``images``)."""
+    refused = refused or {}
     posed_twice = _posed_twice([v.name for v in posed] + [n for n, _ in bad_rows])
-    failed = _bad_pose_records(bad_rows, posed_twice, files, phash)
+    failed = _bad_pose_records(bad_rows, posed_twice, files, phash, poses)
     failed += [
         ViewRecord(
-            name,
-            hash_text(f"{name}|posed {n} times|" + _file_hash_or(files.get(name), "missing")),
+            lasting_key(name, _file_hash_or(files.get(name), None), poses),
+            hash_text(
+                f"{name}|posed {n} times|" + (_file_hash_or(files.get(name), None) or "missing")
+            ),
             phash,
             None,
             "failed",
@@ -239,35 +268,76 @@ def _match_images(
     for v in posed:
         if v.name in posed_twice:
             continue
-        if v.image is not None and v.image.name in files:
-            views.append(v)
+        if v.name in files:
+            views.append(replace(v, image=files[v.name]))
         else:
+            why = refused[v.name][0] if v.name in refused else None
             failed.append(
                 ViewRecord(
-                    v.name,
-                    hash_text(view_key(v, "missing")),
+                    lasting_key(v.name, None, poses),
+                    hash_text(view_key(v, "missing") + (why or "")),
                     phash,
                     None,
                     "failed",
-                    f"image not found: {Path(images) / v.name}",
+                    f"InputError: {why}" if why else f"image not found: {Path(images) / v.name}",
                     center=xyz(v.center),
                 )
             )
-    have_pose = {v.image.name for v in views if v.image is not None}
-    have_pose |= {r.view for r in failed}  # a bad or repeated pose row already failed its image
+    have_pose = {v.name for v in views}
+    have_pose |= {image_name(r.view) for r in failed}  # a bad or repeated row failed its image
     for name, path in files.items():
         if name not in have_pose:
+            content = file_hash(path)
             failed.append(
                 ViewRecord(
-                    name,
-                    file_hash(path),
+                    lasting_key(name, content),
+                    content,
                     phash,
                     None,
                     "failed",
                     f"no pose for image {name} in {poses}",
                 )
             )
+    for name, (why, readable) in refused.items():
+        if name not in have_pose:
+            bytes_hash = _file_hash_or(readable, None)
+            failed.append(
+                ViewRecord(
+                    lasting_key(name, bytes_hash, poses),
+                    hash_text(f"{name}|{why}|{bytes_hash}"),
+                    phash,
+                    None,
+                    "failed",
+                    f"InputError: {why}",
+                )
+            )
     return views, failed
+
+
+def readable_images(
+    files: dict[str, Path], images: Path
+) -> tuple[dict[str, Path], dict[str, tuple[str, Path | None]]]:
+    """Split the listed images of the folder ``images`` into those a run may read and
+    {shown name: (why not, the file to hash or None)} for the others: a link that resolves
+    outside ``images`` (never read, not even hashed) and a name that is not UTF-8 (the index
+    and the logs hold text; shown with ``\\xNN`` escapes). Each fails its own view only."""
+    images = images.resolve()
+    keep: dict[str, Path] = {}
+    refused: dict[str, tuple[str, Path | None]] = {}
+    for name, path in files.items():
+        shown = os.fsencode(name).decode("utf-8", "backslashreplace")
+        try:
+            target = path.resolve(strict=True)
+        except (OSError, RuntimeError) as exc:  # a dangling link, a loop of links
+            refused[shown] = (f"{images / shown}: cannot be resolved: {exc}", None)
+            continue
+        if not target.is_relative_to(images):
+            refused[shown] = (f"{images / shown}: is a link to a file outside {images}", None)
+        elif shown != name:
+            refused[shown] = (f"{images / shown}: file name is not UTF-8; rename the file", path)
+        else:
+            keep[name] = path
+    return keep, refused
 
 
 def _view_tasks(
@@ -291,10 +361,11 @@ def _view_tasks(
             parts = [view_key(v, image_hash[name]), tiles_fingerprint(store, v.center, reach_m)]
             parts += [view_key(by_name[n], image_hash[n]) for n in nbrs]
             h = hash_text("\n".join(parts))
-            if skip(name, h):
+            key = lasting_key(name, image_hash[name])
+            if skip(key, h):
                 n_skipped += 1
             else:
-                todo.append(ViewTask(v, tuple(by_name[n] for n in nbrs), seg.id, h))
+                todo.append(ViewTask(v, tuple(by_name[n] for n in nbrs), seg.id, h, key))
     return out, n_skipped
 
 
@@ -310,6 +381,7 @@ def _batches(
     """Each segment's views to do cut into batches of ``run.batch_size``, in trajectory order."""
     size = config.run.batch_size
     generation = tile_store.index.get("generation")
+    identity = store_identity(tile_store)
     batches = []
     for seg in segments:
         todo = tasks[seg.id]
@@ -319,7 +391,18 @@ def _batches(
         for k in range(0, len(todo), size):
             chunk = tuple(todo[k : k + size])
             batches.append(
-                Batch(seg.id, k // size, chunk, store, out, config, phash, shared, generation)
+                Batch(
+                    seg.id,
+                    k // size,
+                    chunk,
+                    store,
+                    out,
+                    config,
+                    phash,
+                    shared,
+                    generation,
+                    store_id=identity,
+                )
             )
     return batches
 
@@ -329,6 +412,7 @@ def _bad_pose_records(
     posed_twice: dict[str, int],
     files: dict[str, Path],
     phash: str,
+    poses: Path | None = None,
 ) -> list[ViewRecord]:
     """A failed record for each malformed pose row (its error names the file, line and
     field). Its input hash covers the error and the image, so fixing the row, or the image,
@@ -337,8 +421,18 @@ def _bad_pose_records(
     for name, error in bad_rows:
         if name in posed_twice:
             continue
-        key = f"{name}|{error}|{_file_hash_or(files.get(name), 'missing')}"
-        out.append(ViewRecord(name, hash_text(key), phash, None, "failed", f"InputError: {error}"))
+        content = _file_hash_or(files.get(name), None)
+        key = f"{name}|{error}|{content or 'missing'}"
+        out.append(
+            ViewRecord(
+                lasting_key(name, content, poses),
+                hash_text(key),
+                phash,
+                None,
+                "failed",
+                f"InputError: {error}",
+            )
+        )
     return out
 
 
@@ -361,8 +455,25 @@ def view_key(view: View, image_hash: str) -> str:
     )
 
 
-def _file_hash_or(path: Path | None, default: str) -> str:
+def _file_hash_or(path: Path | None, default: str | None) -> str | None:
     return file_hash(path) if path is not None else default
+
+
+def lasting_key(name: str, content_hash: str | None, poses: Path | None = None) -> str:
+    """A view's key in the change index, unique across nights and archives:
+    ``<image name>#<12 hex digits of the image's SHA-256>``. Cameras reuse names every
+    night; the bytes of two different photographs never agree, and the same photograph
+    planned twice (a rerun, a moved archive) keeps its key, so its result is kept, not
+    redone. A view without an image file (a pose whose image is missing) is keyed by the
+    pose file instead: ``<name>#pose-<12 hex digits of the pose file's path>``."""
+    if content_hash is not None:
+        return f"{name}#{content_hash[:12]}"
+    return f"{name}#pose-{hash_text(str(poses))[:12]}"
+
+
+def image_name(key: str) -> str:
+    """The image name of a lasting key (:func:`lasting_key`); a bare name is its own."""
+    return key.rsplit("#", 1)[0]
 
 
 def xyz(a: np.ndarray) -> tuple[float, float, float]:

@@ -12,9 +12,11 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from streetcd.config import ClassMap
 from streetcd.run.plan import Batch, Plan
 from streetcd.run.progress import notify
 from streetcd.store.index import ChangeIndex
+from streetcd.store.objects import ground_classes, rebuild_objects
 from streetcd.store.records import ViewRecord
 
 log = logging.getLogger(__name__)
@@ -43,6 +45,13 @@ class RunSummary:
     wait_s: float = 0.0
     wall_s: float = 0.0
     failures: list[tuple[str, str]] = field(default_factory=list)
+    # The night's verdict (streetcd.run.night.judge): tonight's views that failed in an
+    # earlier run and were not tried again, as (view, error, when it failed); the input
+    # check's notes; the exit code of ``streetcd run`` and where the summary JSON went.
+    still_failing: list[tuple[str, str, str]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    exit_code: int = 0
+    summary_path: str | None = None
 
     def add(self, records: Sequence[ViewRecord]) -> None:
         for r in records:
@@ -122,10 +131,15 @@ def publish_segment(plan: Plan, finished: Iterable[tuple[Any, Batch]]) -> RunSum
     return summary
 
 
-def finish_run(plan: Plan, summary: RunSummary) -> None:
-    """Close the run's row in the index with the counts of ``summary`` (from new_summary):
-    status ``finished``, or ``incomplete`` when batches were lost."""
+def finish_run(plan: Plan, summary: RunSummary, class_map: ClassMap | None = None) -> None:
+    """Merge the change objects of the plan's segments (:func:`rebuild_objects`, over
+    every night the index holds), then close the run's row in the index with the counts
+    of ``summary`` (from new_summary): status ``finished``, or ``incomplete`` when batches
+    were lost. ``class_map``: the config's ``detect.classes``, to read the store's codes."""
     with ChangeIndex(plan.index) as idx:
+        store = dict(plan.inputs).get("store")
+        ground = ground_classes(store, class_map=class_map) if store else None
+        rebuild_objects(idx, [s.id for s in plan.segments], ground)
         idx.finish_run(
             plan.run_id,
             "incomplete" if summary.n_lost else "finished",

@@ -1,8 +1,12 @@
-"""Street segments: views ordered along the acquisition trajectory and cut into pieces.
+"""Street segments: fixed pieces of the street, the views in each in trajectory order.
 
 A segment is the unit the nightly workflow schedules and the change index is queried by
-(DESIGN.md, data flow step 3). It is planned from poses alone, so planning is cheap and
-deterministic: the same views give the same segments, with the same ids, on every rerun.
+(DESIGN.md, data flow step 3). It is a square cell of a fixed grid in the CRS, ``length_m``
+on a side, aligned on multiples of ``length_m``: its id names the cell
+(``g100-E372000-N143000``: 100 m cells, the cell's south-west corner), so the same stretch of
+street has the same id every night, whatever images arrive or are missing, and a view
+belongs to the cell its camera centre lies in. Planning uses poses alone, so it is cheap and
+deterministic.
 
 Coordinates are those of the poses (the CRS, georeferenced metres); planning only takes
 differences and norms of camera centres, which float64 keeps exact to well under a millimetre.
@@ -10,8 +14,7 @@ differences and norms of camera centres, which float64 keeps exact to well under
 
 from __future__ import annotations
 
-import hashlib
-import re
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -20,7 +23,7 @@ import numpy as np
 
 from streetcd.config import SegmentParams
 from streetcd.errors import InputError
-from streetcd.geometry.neighbours import select_neighbours
+from streetcd.geometry.neighbours import MIN_PARALLAX_PX, select_neighbours
 from streetcd.types import View
 
 Order = Literal["auto", "time", "path"]
@@ -30,8 +33,7 @@ Order = Literal["auto", "time", "path"]
 class Segment:
     """A run of consecutive views along the trajectory.
 
-    id : stable, derived from the content (first view's stem + a hash of the views' names and
-        centres), so reruns on the same poses agree.
+    id : the grid cell's id (:func:`cell_id`), the same every night for the same street.
     views : view names in trajectory order.
     neighbours : for each view (same order), the names of its overlapping views; they may
         belong to the next or previous segment.
@@ -96,6 +98,8 @@ def cut_points(centers: np.ndarray, length_m: float, max_gap_m: float) -> list[s
     centers : (N, 3) float64, metres, in trajectory order. A new piece starts where the
     length since the piece's first view would exceed ``length_m`` or where one step is
     longer than ``max_gap_m``. Returns slices into the N views, in order, covering all.
+    (No longer how segments are cut, which is :func:`cell_id`; kept for callers that cut a
+    trajectory into runs.)
     """
     n = len(centers)
     if n == 0:
@@ -112,18 +116,33 @@ def cut_points(centers: np.ndarray, length_m: float, max_gap_m: float) -> list[s
     return pieces
 
 
-def segment_id(names: Sequence[str], centers: np.ndarray) -> str:
-    """Stable id: the first view's stem (made filename-safe) and 10 hex digits of a SHA-1
-    over the names and the centres rounded to the millimetre."""
-    h = hashlib.sha1()
-    for name, c in zip(names, np.round(np.asarray(centers, dtype=np.float64), 3), strict=True):
-        h.update(f"{name}:{c[0]:.3f},{c[1]:.3f},{c[2]:.3f}\n".encode())
-    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", names[0].rsplit("/", 1)[-1].rsplit(".", 1)[0])
-    return f"{stem}-{h.hexdigest()[:10]}"
+def _metres(value: float) -> str:
+    """A coordinate in an id: whole metres without a decimal point, else to the millimetre."""
+    return str(int(value)) if float(value).is_integer() else f"{value:.3f}"
+
+
+def cell_id(x: float, y: float, size_m: float) -> str:
+    """The id of the grid cell (side ``size_m`` metres, aligned on its multiples) holding the
+    point (x, y) of the CRS: ``g<size>-E<west edge>-N<south edge>``. A point on an edge
+    belongs to the cell east / north of it."""
+    i, j = math.floor(x / size_m), math.floor(y / size_m)
+    return f"g{_metres(size_m)}-E{_metres(i * size_m)}-N{_metres(j * size_m)}"
+
+
+def segment_id(names: Sequence[str], centers: np.ndarray, size_m: float = 100.0) -> str:
+    """The id of the segment of views at ``centers`` ((N, 3) metres, N ≥ 1): the grid cell of
+    the first centre (every view of a segment lies in one cell). ``names`` is not used: an
+    id never depends on which images arrived."""
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)[0]
+    return cell_id(float(c[0]), float(c[1]), size_m)
 
 
 def neighbours_of(
-    views: Sequence[View], n: int, radius_m: float, max_candidates: int = 12
+    views: Sequence[View],
+    n: int,
+    radius_m: float,
+    max_candidates: int = 12,
+    min_parallax_px: float = MIN_PARALLAX_PX,
 ) -> dict[str, tuple[str, ...]]:
     """For each view, its ``n`` best overlapping views among the ``max_candidates`` nearest
     centres within ``radius_m``.
@@ -145,7 +164,8 @@ def neighbours_of(
         near = sorted(
             int(j) for d, j in zip(dist[i], idx[i], strict=True) if np.isfinite(d) and j != i
         )
-        picked = select_neighbours(view, [views[j] for j in near], n=n) if near else []
+        cands = [views[j] for j in near]
+        picked = select_neighbours(view, cands, n=n, min_parallax_px=min_parallax_px)
         out[view.name] = tuple(v.name for v in picked)
     return out
 
@@ -155,8 +175,10 @@ def plan_segments(
     params: SegmentParams = SegmentParams(),
     n_neighbours: int = 3,
     order: Order = "auto",
+    min_parallax_px: float = MIN_PARALLAX_PX,
 ) -> list[Segment]:
-    """Order ``views`` along the trajectory, cut them into segments, pair each view with its
+    """Order ``views`` along the trajectory, group them by grid cell (``params.length_m``
+    on a side, :func:`cell_id`) into segments, pair each view with its
     ``n_neighbours`` best overlapping views (``detect.correlate.n_neighbours`` of the config).
 
     Views must have unique names; poses in the CRS (any frame works, ids and boxes are in
@@ -168,19 +190,23 @@ def plan_segments(
         raise InputError(f"view names must be unique; repeated: {', '.join(dup[:5])}")
     ordered = order_views(views, order)
     neighbours = neighbours_of(
-        ordered, n_neighbours, params.neighbour_radius_m, params.max_candidates
+        ordered, n_neighbours, params.neighbour_radius_m, params.max_candidates, min_parallax_px
     )
-    centers = np.array([v.center for v in ordered]).reshape(-1, 3)
+    # Views by grid cell, each cell's views in trajectory order; cells in the order the
+    # trajectory first enters them.
+    cells: dict[str, list[View]] = {}
+    for v in ordered:
+        cell = cell_id(float(v.center[0]), float(v.center[1]), params.length_m)
+        cells.setdefault(cell, []).append(v)
     segments = []
-    for piece in cut_points(centers, params.length_m, params.max_gap_m):
-        seg_views = ordered[piece]
-        c = centers[piece]
+    for cid, seg_views in cells.items():
+        c = np.array([v.center for v in seg_views]).reshape(-1, 3)
         lo = c[:, :2].min(axis=0) - params.bbox_margin_m
         hi = c[:, :2].max(axis=0) + params.bbox_margin_m
         seg_names = tuple(v.name for v in seg_views)
         segments.append(
             Segment(
-                id=segment_id(seg_names, c),
+                id=cid,
                 views=seg_names,
                 neighbours=tuple(neighbours[name] for name in seg_names),
                 polyline=c[:, :2].copy(),

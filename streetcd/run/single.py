@@ -35,7 +35,12 @@ def detect_files(
     if poses.crs and cloud.crs and poses.crs != cloud.crs:
         raise CRSMismatchError(f"poses {poses.source} are in {poses.crs}, the cloud in {cloud.crs}")
     if neighbour_names is None:
-        nb_views = select_neighbours(view, poses.views, n=params.correlate.n_neighbours)
+        nb_views = select_neighbours(
+            view,
+            poses.views,
+            n=params.correlate.n_neighbours,
+            min_parallax_px=params.correlate.min_parallax_px,
+        )
     else:
         nb_views = [poses.get(n) for n in neighbour_names]
 

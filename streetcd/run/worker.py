@@ -38,11 +38,11 @@ from streetcd.detect.chain import detect_view
 from streetcd.detect.regions import Region
 from streetcd.errors import InputError, MissingInputError
 from streetcd.geometry.frustum import in_frustum
-from streetcd.io.images import capture_time, read_rgb
+from streetcd.io.images import DEFAULT_MAX_PIXELS, capture_time, fit_view, read_rgb
 from streetcd.io.outputs import write_mask, write_overlay
 from streetcd.run.plan import Batch, ViewTask, xyz
 from streetcd.store.crop import crop_for_view, crop_for_views
-from streetcd.store.records import RegionRecord, ViewRecord
+from streetcd.store.records import RegionRecord, ViewRecord, camera_json
 from streetcd.store.tiles import TileStore
 from streetcd.types import Intrinsics, PointCloud, Pose, View
 
@@ -105,6 +105,7 @@ class ImageCache:
         self._io = io
         self.images = FutureCache(size)
         self.times = FutureCache(size)
+        self.max_pixels = DEFAULT_MAX_PIXELS  # run.max_image_pixels of the batch at hand
 
     @staticmethod
     def _key(view: View) -> tuple[Path, tuple[str, float]]:
@@ -119,7 +120,8 @@ class ImageCache:
     def get(self, view: View) -> np.ndarray:
         """(H, W, 3) uint8 RGB image of ``view``, read-only (:func:`read_rgb`)."""
         path, key = self._key(view)
-        return self.images.get(key, lambda: read_rgb(path, view))
+        limit = self.max_pixels
+        return self.images.get((*key, limit), lambda: read_rgb(path, view, limit))
 
     def captured(self, view: View) -> str | None:
         """:func:`capture_time` of ``view``'s image (None without one)."""
@@ -225,6 +227,7 @@ class WorkerRuntime:
         """
         store = self.store(batch.store, batch.store_generation)
         tasks = batch.tasks
+        self.images.max_pixels = batch.config.run.max_image_pixels
         self.images.prefetch(tasks[0])  # found at once when the batch before fetched it ahead
         t0, c0 = time.perf_counter(), time.process_time()
         cloud, _ = self.segment_cloud(batch, store)
@@ -295,21 +298,27 @@ class WorkerRuntime:
         thread while the I/O thread writes its overlay."""
         view, config = task.view, batch.config
         base: dict[str, Any] = dict(
-            view=view.name,
+            view=task.key or view.name,
             input_hash=task.input_hash,
             params_hash=batch.params_hash,
             segment_id=task.segment_id,
             center=xyz(view.center),
+            image=view.name,
+            image_path=None if view.image is None else str(view.image),
+            camera=camera_json(view),
         )
         t0, c0 = time.perf_counter(), time.process_time()  # CPU: the process, one view at a time
-        if view.image is not None:
-            base["captured_at"] = self.images.captured(view)  # read ahead in the I/O thread
-        try:
+        try:  # everything a view reads, its EXIF included, fails that view alone
+            if view.image is not None:
+                base["captured_at"] = self.images.captured(view)  # read ahead in the I/O thread
             image = self.images.get(view)
+            # an image of the pose's camera at another resolution: intrinsics rescaled to it
+            view = fit_view(view, image.shape[1], image.shape[0])
             neighbours = []
             for n in task.neighbours:
                 try:
-                    neighbours.append((self.images.get(n), n))
+                    other = self.images.get(n)
+                    neighbours.append((other, fit_view(n, other.shape[1], other.shape[0])))
                 except (InputError, MissingInputError) as exc:
                     log.warning("view %s: neighbour %s left out: %s", view.name, n.name, exc)
             max_range_m = config.detect.max_range_m
@@ -449,13 +458,20 @@ def _written(record: ViewRecord, writing: Sequence[Future]) -> ViewRecord:
 
 
 def cloud_key(batch: Batch) -> tuple:
+    """The key of a segment's shared crop in a worker's cache: everything the crop depends
+    on. The store (path, generation and identity: a store rebuilt at the same path starts its
+    generations again), the range, and each view's name, pose and camera: which points a view
+    keeps depends on where it is AND where it looks, and on its frustum, so a rerun with
+    re-oriented poses on a long-lived cluster must not get the old crop. Exact bytes, not
+    rounded: a crop made for other poses is never right."""
     views = batch.crop_views or batch_views(batch)
     return (
         batch.store,
         batch.store_generation,
+        batch.store_id,
         batch.segment_id,
         batch.config.detect.max_range_m,
-        tuple(v.name for v in views),
+        tuple((v.name, v.pose.R.tobytes(), v.pose.t.tobytes(), v.intrinsics) for v in views),
     )
 
 
@@ -499,13 +515,22 @@ def region_record(g: Region, origin: np.ndarray) -> RegionRecord:
     located = all(np.isfinite(p).all() for p in parts)  # else no surface behind it
     c, lo, hi = (xyz(p) if located else None for p in parts)
     return RegionRecord(
-        int(g.label), int(g.pixels), float(g.score), c, lo, hi, int(g.dominant_class)
+        int(g.label),
+        int(g.pixels),
+        float(g.score),
+        c,
+        lo,
+        hi,
+        int(g.dominant_class),
+        int(g.foot_class),
     )
 
 
 def output_paths(batch: Batch, task: ViewTask) -> tuple[str, str | None]:
     """Where the mask PNG and the overlay JPEG (None without overlays) of a view go."""
     stem = Path(task.view.name).stem
+    if "#" in task.key:  # the image's hash: names are reused from night to night
+        stem += "-" + task.key.rsplit("#", 1)[1]
     folder = Path(batch.out_dir)
     mask_path = folder / "masks" / task.segment_id / f"{stem}.mask.png"
     if not batch.config.run.write_overlays:

@@ -107,6 +107,38 @@ def to_geojson(
     return out
 
 
+def objects_to_geojson(objects: Sequence[dict], crs: str | None, *, wgs84: bool = True) -> dict:
+    """A GeoJSON FeatureCollection with one feature per change object
+    (:func:`streetcd.store.objects.list_objects`'s dicts): its x/y box as a Polygon (a Point
+    where the box has no area), and in the properties its id, kind, class, confidence,
+    centroid and box in the source CRS, nights, review, transient reason, its views and the
+    overlay paths of those that see the change. Coordinates as :func:`to_geojson`."""
+    transform = _to_wgs84(crs) if (wgs84 and crs is not None) else (lambda xs, ys: (xs, ys))
+    nd = 7 if (wgs84 and crs is not None) else 3
+
+    def pts(coords: Sequence[Sequence[float]]) -> list[list[float]]:
+        xs, ys = transform([c[0] for c in coords], [c[1] for c in coords])
+        return [[round(float(x), nd), round(float(y), nd)] for x, y in zip(xs, ys, strict=True)]
+
+    features = []
+    for o in objects:
+        x0, y0, _, x1, y1, _ = o["bbox"]
+        if x1 > x0 and y1 > y0:
+            ring = pts([(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)])
+            geometry: dict[str, Any] = {"type": "Polygon", "coordinates": [ring]}
+        else:
+            geometry = {"type": "Point", "coordinates": pts([o["centroid"]])[0]}
+        props = {k: v for k, v in o.items() if k != "views"}
+        props["class_name"] = NAMES.get(o["class"], "unknown")
+        props["views"] = o["views"]
+        props["overlays"] = [v["overlay"] for v in o["views"] if v["sees_change"] and v["overlay"]]
+        features.append({"type": "Feature", "geometry": geometry, "properties": props})
+    out: dict = {"type": "FeatureCollection", "features": features, "streetcd": {"source_crs": crs}}
+    if crs is not None and not wgs84:
+        out["crs"] = {"type": "name", "properties": {"name": _ogc_urn(crs)}}
+    return out
+
+
 def _to_wgs84(crs: str) -> Any:
     import pyproj
 

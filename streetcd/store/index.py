@@ -42,7 +42,7 @@ from typing import Any
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError
 from streetcd.store.records import FlaggedRow, RegionRecord, SegmentRow, ViewRecord
 
-SCHEMA_VERSION = "3"
+SCHEMA_VERSION = "4"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -77,8 +77,12 @@ CREATE TABLE IF NOT EXISTS views (
     center_x REAL, center_y REAL, center_z REAL,
     detect_s REAL, total_s REAL, cpu_s REAL,  -- seconds: detector, whole view, its CPU
     run_id TEXT, processed_at TEXT,
-    captured_at TEXT  -- when the image was taken (EXIF), NULL if unknown
+    captured_at TEXT,  -- when the image was taken (EXIF), NULL if unknown
+    image TEXT,  -- the image's name (views are keyed by name#content hash)
+    image_path TEXT,
+    camera TEXT  -- JSON pose and intrinsics (records.camera_json), NULL if unknown
 );
+CREATE INDEX IF NOT EXISTS views_center ON views(center_x, center_y);
 CREATE TABLE IF NOT EXISTS flagged (
     id INTEGER PRIMARY KEY,
     view TEXT NOT NULL UNIQUE REFERENCES views(view),
@@ -106,11 +110,57 @@ CREATE TABLE IF NOT EXISTS regions (
     min_x REAL, min_y REAL, min_z REAL,
     max_x REAL, max_y REAL, max_z REAL,
     dominant_class INTEGER NOT NULL,
+    foot_class INTEGER NOT NULL DEFAULT 0,  -- old cloud's class behind the lowest pixels
     UNIQUE (flagged_id, label)
 );
 CREATE INDEX IF NOT EXISTS regions_flagged ON regions(flagged_id);
 CREATE VIRTUAL TABLE IF NOT EXISTS regions_rtree USING rtree(id, min_x, max_x, min_y, max_y);
+CREATE TABLE IF NOT EXISTS objects (
+    id INTEGER PRIMARY KEY,
+    object_id TEXT NOT NULL UNIQUE,
+    segment_id TEXT NOT NULL,
+    kind TEXT NOT NULL CHECK (kind IN ('added', 'removed', 'unknown')),
+    class INTEGER NOT NULL,
+    confidence REAL NOT NULL,
+    x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL,
+    min_x REAL NOT NULL, min_y REAL NOT NULL, min_z REAL NOT NULL,
+    max_x REAL NOT NULL, max_y REAL NOT NULL, max_z REAL NOT NULL,
+    pixels INTEGER NOT NULL,
+    n_views INTEGER NOT NULL,  -- views that see the change
+    n_without INTEGER NOT NULL,  -- views that see the spot without a change
+    first_seen TEXT NOT NULL, last_seen TEXT NOT NULL,  -- nights (YYYY-MM-DD)
+    transient TEXT  -- why it is not a change of the street (NULL: it is one)
+);
+CREATE INDEX IF NOT EXISTS objects_segment ON objects(segment_id);
+CREATE VIRTUAL TABLE IF NOT EXISTS objects_rtree USING rtree(id, min_x, max_x, min_y, max_y);
+CREATE TABLE IF NOT EXISTS object_views (
+    object_id TEXT NOT NULL,
+    view TEXT NOT NULL,
+    sees_change INTEGER NOT NULL,
+    labels TEXT NOT NULL,  -- JSON list of the view's region labels in the object
+    PRIMARY KEY (object_id, view)
+);
+CREATE TABLE IF NOT EXISTS reviews (
+    object_id TEXT PRIMARY KEY,
+    segment_id TEXT NOT NULL,
+    status TEXT NOT NULL CHECK (status IN ('confirmed', 'false_alarm', 'fixed')),
+    who TEXT, at TEXT NOT NULL, note TEXT,
+    min_x REAL NOT NULL, min_y REAL NOT NULL, min_z REAL NOT NULL,  -- the box reviewed
+    max_x REAL NOT NULL, max_y REAL NOT NULL, max_z REAL NOT NULL
+);
 """
+
+
+def _old_schema_message(path: Path, version: str | None) -> str:
+    """Why an index of another schema is refused, and what to do."""
+    if version in ("2", "3"):
+        return (
+            f"{path}: schema_version {version} keys views by bare file name, which cannot tell"
+            f" one night's IMG_0001 from another's, and has no change objects; it is left"
+            f" untouched: run into a new index (schema {SCHEMA_VERSION}), or keep reading this"
+            " one with the streetcd version that wrote it"
+        )
+    return f"{path}: schema_version {version!r}, expected {SCHEMA_VERSION}"
 
 
 def utc_now() -> str:
@@ -133,43 +183,63 @@ def parse_since(text: str) -> str:
 
 
 class ChangeIndex:
-    """An open change index (a SQLite file). Use as a context manager, or call close()."""
+    """An open change index (a SQLite file). Use as a context manager, or call close().
 
-    def __init__(self, path: str | Path, *, create: bool = True, timeout_s: float = 60.0):
+    ``readonly``: open with SQLite's ``mode=ro`` (implies ``create=False``): nothing is
+    created or written, not even the WAL setting, and a read-only file works.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        create: bool = True,
+        timeout_s: float = 60.0,
+        readonly: bool = False,
+    ):
         self.path = Path(path)
-        if not create and not self.path.exists():
+        create = create and not readonly
+        if not create and not self.path.is_file():
             raise MissingInputError(f"change index not found: {self.path}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        # isolation_level=None: we open transactions ourselves, one per unit of work.
-        self.conn = sqlite3.connect(
-            self.path, timeout=timeout_s, isolation_level=None, check_same_thread=False
-        )
+        if readonly:
+            uri = self.path.resolve().as_uri() + "?mode=ro"
+            self.conn = sqlite3.connect(
+                uri, uri=True, timeout=timeout_s, isolation_level=None, check_same_thread=False
+            )
+        else:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # isolation_level=None: we open transactions ourselves, one per unit of work.
+            self.conn = sqlite3.connect(
+                self.path, timeout=timeout_s, isolation_level=None, check_same_thread=False
+            )
         self.conn.row_factory = sqlite3.Row
         try:
-            self.conn.execute("PRAGMA journal_mode=WAL")
-            self.conn.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable per commit
+            version = self._version()
+            if version is not None and version != SCHEMA_VERSION:
+                raise InputError(_old_schema_message(self.path, version))
+            if not readonly:
+                self.conn.execute("PRAGMA journal_mode=WAL")
+                self.conn.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable per commit
             if create:
                 with self.transaction():
-                    self._migrate()
                     self._create()
             version = self._meta("schema_version")
         except sqlite3.DatabaseError as exc:
             self.conn.close()
             raise InputError(f"{self.path}: not a streetcd change index ({exc})") from None
+        except InputError:
+            self.conn.close()
+            raise
         if version != SCHEMA_VERSION:
             self.conn.close()
-            raise InputError(f"{self.path}: schema_version {version!r}, expected {SCHEMA_VERSION}")
+            raise InputError(_old_schema_message(self.path, version))
 
-    def _migrate(self) -> None:
-        """Bring an index of an older schema up to this one, in place (inside a write
-        transaction). 2 → 3: ``captured_at`` on views and flagged (NULL: unknown)."""
+    def _version(self) -> str | None:
+        """The schema version the file holds, None for a new (empty) database."""
         has_meta = self.conn.execute(
             "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'meta'"
         ).fetchone()
-        if has_meta and self._meta("schema_version") == "2":
-            self.conn.execute("ALTER TABLE views ADD COLUMN captured_at TEXT")
-            self.conn.execute("ALTER TABLE flagged ADD COLUMN captured_at TEXT")
-            self.conn.execute("UPDATE meta SET value = '3' WHERE key = 'schema_version'")
+        return self._meta("schema_version") if has_meta else None
 
     def _create(self) -> None:
         for statement in _SCHEMA.split(";"):
@@ -236,7 +306,9 @@ class ChangeIndex:
     # --- segments -------------------------------------------------------------------------
 
     def add_segments(self, segments: Iterable, run_id: str | None = None) -> None:
-        """Insert planned segments (:class:`streetcd.run.segments.Segment`); known ids are kept."""
+        """Insert planned segments (:class:`streetcd.run.segments.Segment`); a known id keeps
+        its row (ids name fixed pieces of the street: the first night's views and trajectory
+        describe it as well as a later night's)."""
         with self.transaction():
             for s in segments:
                 cur = self.conn.execute(
@@ -274,7 +346,7 @@ class ChangeIndex:
                 self._drop_flagged(r.view)
                 c = r.center or (None, None, None)
                 self.conn.execute(
-                    "INSERT OR REPLACE INTO views VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    "INSERT OR REPLACE INTO views VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                     (
                         r.view,
                         r.input_hash,
@@ -290,6 +362,9 @@ class ChangeIndex:
                         run_id,
                         now,
                         r.captured_at,
+                        r.image or r.view.rsplit("#", 1)[0],
+                        r.image_path,
+                        r.camera,
                     ),
                 )
                 if r.flagged:
@@ -330,7 +405,8 @@ class ChangeIndex:
                 coords = [*g.centroid, *g.bbox_min, *g.bbox_max]
             cur = self.conn.execute(
                 "INSERT INTO regions (flagged_id, label, pixels, score, x, y, z, min_x, min_y,"
-                " min_z, max_x, max_y, max_z, dominant_class) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                " min_z, max_x, max_y, max_z, dominant_class, foot_class)"
+                " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                 (
                     flagged_id,
                     int(g.label),
@@ -338,6 +414,7 @@ class ChangeIndex:
                     float(g.score),
                     *(None if c is None else float(c) for c in coords),
                     int(g.dominant_class),
+                    int(g.foot_class),
                 ),
             )
             if g.bbox_min is not None and g.bbox_max is not None:
@@ -394,7 +471,7 @@ class ChangeIndex:
             )
             args += [mnx, mxx, mny, mxy, mnx, mxx, mny, mxy]
         sql = (
-            "SELECT f.*, v.center_x, v.center_y, v.center_z FROM flagged f "
+            "SELECT f.*, v.center_x, v.center_y, v.center_z, v.image FROM flagged f "
             "JOIN views v ON v.view = f.view"
             + (" WHERE " + " AND ".join(where) if where else "")
             + " ORDER BY f.segment_id, f.view"
@@ -415,6 +492,7 @@ class ChangeIndex:
                 xyz(g, "min_x", "min_y", "min_z"),
                 xyz(g, "max_x", "max_y", "max_z"),
                 g["dominant_class"],
+                g["foot_class"],
             )
             for g in self.conn.execute(
                 "SELECT * FROM regions WHERE flagged_id = ? ORDER BY label", (r["id"],)
@@ -433,6 +511,7 @@ class ChangeIndex:
             center,
             regions,
             r["captured_at"],
+            r["image"],
         )
 
     def segments(
@@ -521,8 +600,9 @@ def _canon(value: object) -> str:
 
 def canonical_dump(path: str | Path) -> list[str]:
     """The index's content as sorted text lines, without what differs between equivalent
-    runs: run ids, timestamps, durations, integer row ids, the runs table, and the folder of
-    mask paths (only the file name is kept). Floats are printed to 9 significant digits.
+    runs: run ids, timestamps (objects' first and last nights too), durations, integer row
+    ids, the runs table, and the folder of mask paths (only the file name is kept). Floats
+    are printed to 9 significant digits.
 
     Two runs over the same inputs, one interrupted and resumed, give equal dumps.
     """
@@ -554,8 +634,28 @@ def canonical_dump(path: str | Path) -> list[str]:
             "LEFT JOIN regions_rtree t ON t.id = g.id"
         ):
             lines.append("region " + " ".join(_canon(x) for x in r))
+        for r in q(
+            "SELECT object_id, segment_id, kind, class, confidence, x, y, z, min_x, min_y, min_z,"
+            " max_x, max_y, max_z, pixels, n_views, n_without, transient FROM objects"
+        ):
+            lines.append("object " + " ".join(_canon(x) for x in r))
+        for r in q("SELECT object_id, view, sees_change, labels FROM object_views"):
+            lines.append("object_view " + " ".join(_canon(x) for x in r))
         n_rtree = q(
             "SELECT (SELECT count(*) FROM segments_rtree), (SELECT count(*) FROM regions_rtree)"
         ).fetchone()
         lines.append(f"rtree_rows {n_rtree[0]} {n_rtree[1]}")
     return sorted(lines)
+
+
+# --- failed views, for the night's verdict (streetcd.run.night) ---------------------------
+# Kept apart at the end of the module: the run's "N views still failing since <date>".
+
+
+def failed_views(idx: ChangeIndex) -> list[tuple[str, str, str | None, str | None]]:
+    """(view, error, run id, processed at) of every failed view in ``idx``, by view: the
+    run that last tried it and when (UTC, the index's format)."""
+    rows = idx.conn.execute(
+        "SELECT view, error, run_id, processed_at FROM views WHERE status = 'failed' ORDER BY view"
+    )
+    return [(r[0], r[1] or "", r[2], r[3]) for r in rows]

@@ -26,6 +26,7 @@ when its holder exits, even on SIGKILL, so there is never a stale lock to clear.
 
 from __future__ import annotations
 
+import filecmp
 import functools
 import hashlib
 import math
@@ -43,7 +44,6 @@ from typing import Any
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec
 
 from streetcd.errors import CRSMismatchError, InputError, StoreLockedError, StreetcdError
 from streetcd.io.las import LasInfo
@@ -51,6 +51,8 @@ from streetcd.io.readers import LaspyReader, PointReader, find_archive_files
 from streetcd.store.locks import exclusive
 from streetcd.store.tiles import (
     _SEGMENT_COLUMNS,
+    ARRAY_CONFIG,
+    COMPRESSORS,
     FORMAT,
     INDEX_ATTR,
     LOCK_NAME,
@@ -62,7 +64,6 @@ from streetcd.types import PointCloud
 
 CHUNK_POINTS = 262_144  # points per zarr chunk of a source's arrays
 SEGMENT_POINTS = 262_144  # a tile's buffer is written out as one segment at this size
-_COMPRESSOR = BloscCodec(cname="zstd", clevel=1, shuffle="shuffle")  # = clevel 3's size, faster
 _INT32_MAX = 2**31 - 1
 
 # progress(points_done, points_total, message): called from the process that runs ingest().
@@ -137,7 +138,9 @@ def _write_generation(path: Path, generation: int, sources: dict[str, _Source]) 
     )
     for name, a in (("segments", seg), ("classes", cls)):
         rows = min(max(len(a), 1), 1_048_576)
-        group.create_array(name, data=a, chunks=(rows, a.shape[1]), compressors=_COMPRESSOR)
+        group.create_array(
+            name, data=a, chunks=(rows, a.shape[1]), compressors=COMPRESSORS, config=ARRAY_CONFIG
+        )
 
 
 # --- ingest: one file on a worker --------------------------------------------------------
@@ -187,13 +190,18 @@ class _SourceWriter:
         if self.pending_points >= self.chunk_points:
             self._write(final=False)
 
-    def finish(self) -> tuple[np.ndarray, np.ndarray]:
-        """Write what is pending; the segments (s, 10) and classes (k, 3), int64."""
+    def finish(self) -> tuple[np.ndarray, np.ndarray, dict[str, dict[str, Any]]]:
+        """Write what is pending; the segments (s, 10) and classes (k, 3), int64, and the
+        manifest of the arrays (field → dtype, shape, chunk rows) the reader checks."""
         if self.pending_points:
             self._write(final=True)
         segments = np.array(self.segments, dtype=np.int64).reshape(-1, _SEGMENT_COLUMNS - 1)
         classes = np.concatenate([np.empty((0, 3), np.int64), *self.classes]).astype(np.int64)
-        return segments, classes
+        manifest = {
+            k: {"dtype": str(a.dtype), "shape": list(a.shape), "chunk_rows": a.chunks[0]}
+            for k, a in self.arrays.items()
+        }
+        return segments, classes, manifest
 
     def _write(self, final: bool) -> None:
         data = {k: np.concatenate([p[k] for p in self.pending]) for k in self.pending[0]}
@@ -208,7 +216,11 @@ class _SourceWriter:
             group = zarr.open_group(str(self.path), mode="w")
             for k, a in data.items():
                 self.arrays[k] = group.create_array(
-                    k, data=a[:n], compressors=_COMPRESSOR, chunks=(rows, *a.shape[1:])
+                    k,
+                    data=a[:n],
+                    compressors=COMPRESSORS,
+                    chunks=(rows, *a.shape[1:]),
+                    config=ARRAY_CONFIG,
                 )
         else:
             for k, a in data.items():
@@ -238,6 +250,7 @@ class _FileDone:
     points: int
     segments: np.ndarray  # (s, 10) int64: i, j, start, count, min xyz, max xyz
     classes: np.ndarray  # (k, 3) int64: segment row, class code, count
+    arrays: dict[str, dict[str, Any]]  # field → dtype, shape, chunk rows (the manifest)
 
 
 def _split_by_tile(
@@ -246,7 +259,13 @@ def _split_by_tile(
     """Bin one chunk (CRS coordinates) into tiles: ((i, j), fields) with xyz quantised to
     int32 relative to the tile corner."""
     xyz = cloud.xyz
-    ij = np.floor(xyz[:, :2] / ts).astype(np.int64)
+    cells = np.floor(xyz[:, :2] / ts)
+    if np.abs(cells).max() >= _INT32_MAX:  # tile numbers must fit the grid's int32 codes
+        raise InputError(
+            f"{path}: field 'X/Y' out of range for {ts} m tiles (|x|, |y| up to "
+            f"{np.abs(xyz[:, :2]).max():.1f} m)"
+        )
+    ij = cells.astype(np.int64)
     zmax = np.abs(xyz[:, 2]).max()
     if zmax / scale >= _INT32_MAX:
         raise InputError(
@@ -310,8 +329,8 @@ def _ingest_file(task: _FileTask, report: Callable[[str, int], None] | None = No
     for ij, buf in tiles.items():
         if buf.count:
             writer.add(*ij, buf.take())
-    segments, classes = writer.finish()
-    return _FileDone(task.path, task.key, total, segments, classes)
+    segments, classes, arrays = writer.finish()
+    return _FileDone(task.path, task.key, total, segments, classes, arrays)
 
 
 def _queue_report(path: str, n: int) -> None:
@@ -340,8 +359,11 @@ class IngestResult:
         return not self.failed
 
 
-def _file_key(path: Path, size: int, mtime_ns: int) -> str:
-    return hashlib.sha1(f"{path}|{size}|{mtime_ns}".encode()).hexdigest()[:16]
+def _file_key(path: Path, size: int, mtime_ns: int, replaces: str = "") -> str:
+    """The key of one version of a source; ``replaces``: the key of the damaged copy of the
+    same version that it repairs."""
+    salt = f"|repairs {replaces}" if replaces else ""
+    return hashlib.sha1(f"{path}|{size}|{mtime_ns}{salt}".encode()).hexdigest()[:16]
 
 
 def _store_origin(infos: Sequence[LasInfo]) -> np.ndarray:
@@ -448,6 +470,7 @@ class _Store:
             "mtime_ns": mtime_ns,
             "points": done.points,
             "tiles": len(np.unique(_cell_codes(done.segments[:, 0], done.segments[:, 1]))),
+            "arrays": done.arrays,
         }
         self.publish()
         if old is not None and old[0] != done.key:
@@ -457,7 +480,7 @@ class _Store:
         """Record a failed file. An earlier good version of it stays in the store (its
         ``key``, ``points`` and ``tiles`` are kept; a later good version replaces it)."""
         old = self.index["files"].get(path, {})
-        rec = {k: old[k] for k in ("key", "points", "tiles") if k in old}
+        rec = {k: old[k] for k in ("key", "points", "tiles", "arrays") if k in old}
         rec.update(
             status="failed",
             error=str(exc),
@@ -495,6 +518,7 @@ def ingest(
     prune: bool = False,
     progress: Progress | None = None,
     client: Any | None = None,
+    recheck: bool = False,
 ) -> IngestResult:
     """Ingest an archive of LAS/LAZ files into the tile store ``store`` (created if needed).
 
@@ -507,7 +531,10 @@ def ingest(
     happen here, one file at a time. Memory per process is about
     ``chunk_points + buffer_points`` points (≈ 60 B each), whatever the archive size.
     ``prune`` drops the points of files the store has but the archive no longer lists.
-    Raises StoreLockedError when another ingest is writing to ``store``.
+    ``recheck`` reads every chunk of the files it would skip (:func:`~streetcd.store.verify.
+    verify_store`) and ingests again those whose points are damaged, under a new key (so the
+    views that read them are redone). Raises StoreLockedError when another ingest is writing
+    to ``store``.
     """
     t0 = time.perf_counter()
     if not (tile_size_m > 0 and math.isfinite(tile_size_m)):
@@ -518,7 +545,15 @@ def ingest(
     path = Path(store).resolve()
     files = find_archive_files(archive)
     job = _Job(
-        path, tuple(files), tile_size_m, scale_m, workers, reader, chunk_points, buffer_points
+        path,
+        tuple(files),
+        tile_size_m,
+        scale_m,
+        workers,
+        reader,
+        chunk_points,
+        buffer_points,
+        recheck,
     )
     with _store_lock(path):
         return _ingest_locked(job, prune, progress, t0, client)
@@ -536,6 +571,16 @@ class _Job:
     reader: PointReader
     chunk_points: int
     buffer_points: int
+    recheck: bool = False
+
+
+def _damaged(path: Path, skipped: list[str], index: dict[str, Any]) -> dict[str, str]:
+    """{source: its key} for the ``skipped`` sources whose points in the store are damaged
+    (every chunk read and checked)."""
+    from streetcd.store.verify import verify_store
+
+    report = verify_store(path, only=skipped)
+    return {s: index["files"][s]["key"] for s in sorted(report.damaged) if s in skipped}
 
 
 def _plan(
@@ -555,6 +600,14 @@ def _plan(
     todo: list[tuple[str, LasInfo]] = []
     for f in files:
         st = f.stat()
+        name = str(f)
+        try:
+            name.encode("utf-8")
+        except UnicodeEncodeError:  # the index is JSON (UTF-8): record it under a readable name
+            name = os.fsencode(f).decode("utf-8", "backslashreplace")
+            stats[name] = (st.st_size, st.st_mtime_ns)
+            failed[name] = InputError(f"{name}: the file name is not valid UTF-8; rename it")
+            continue
         stats[str(f)] = (st.st_size, st.st_mtime_ns)
         rec = (index or {}).get("files", {}).get(str(f))
         if rec and rec["status"] == "done" and (rec["size"], rec["mtime_ns"]) == stats[str(f)]:
@@ -567,6 +620,12 @@ def _plan(
             todo.append((str(f), info))
         except StreetcdError as exc:
             failed[str(f)] = exc
+    for fp, original in _duplicates([fp for fp, _ in todo], skipped, stats).items():
+        failed[fp] = InputError(
+            f"{fp}: has the same bytes as {original}; its points would be in the store twice "
+            "(remove one copy from the archive)"
+        )
+    todo = [(fp, info) for fp, info in todo if fp not in failed]
     crs = index["crs"] if index is not None else _reference_crs([i for _, i in todo])
     for fp, info in todo:
         if info.crs != crs:
@@ -575,6 +634,38 @@ def _plan(
             )
     todo = [(fp, info) for fp, info in todo if fp not in failed]
     return todo, skipped, failed, stats, crs
+
+
+def _duplicates(
+    todo: Sequence[str], kept: Sequence[str], stats: dict[str, tuple[int, int]]
+) -> dict[str, str]:
+    """{file to ingest: the file it is a byte-for-byte copy of}: a copy of a file already in
+    the store (``kept``), or of an earlier one (path order) of ``todo``. Only files of the
+    same size are compared, their first 64 KiB (header, VLRs, first points) before the rest."""
+    by_size: dict[int, list[str]] = {}
+    for f in [*kept, *todo]:
+        by_size.setdefault(stats[f][0], []).append(f)
+    out: dict[str, str] = {}
+    new = set(todo)
+    for group in by_size.values():
+        originals: list[str] = []
+        for f in group:
+            same = next((o for o in originals if _same_bytes(o, f)), None)
+            if same is not None and f in new:
+                out[f] = same
+            elif same is None:
+                originals.append(f)
+    return out
+
+
+def _same_bytes(a: str, b: str) -> bool:
+    try:
+        with open(a, "rb") as fa, open(b, "rb") as fb:
+            if fa.read(1 << 16) != fb.read(1 << 16):
+                return False
+        return filecmp.cmp(a, b, shallow=False)
+    except OSError:  # unreadable: its own read fails it, by name
+        return False
 
 
 def _ingest_locked(
@@ -588,6 +679,13 @@ def _ingest_locked(
             f"scale_m={index['scale_m']}; asked for {tile_size_m}, {scale_m}"
         )
     todo, skipped, failed, stats, crs = _plan(job.files, index, job.reader, path)
+    repair = _damaged(path, skipped, index) if job.recheck and index is not None else {}
+    for f in repair:  # ingested again, as if changed
+        skipped.remove(f)
+        try:
+            todo.append((f, job.reader.info(Path(f))))
+        except StreetcdError as exc:
+            failed[f] = exc
     if index is None:
         index = _empty_index(tile_size_m, scale_m, _store_origin([i for _, i in todo]), crs)
         writer = _Store.create(path, index)
@@ -610,7 +708,9 @@ def _ingest_locked(
         if progress is not None:
             progress(min(done_points, total), total, Path(p).name)
 
-    keys = {f: _file_key(Path(f), *stats[f]) for f, _ in todo}
+    # a repaired source gets a new key: the fingerprint of its tiles, and so the input hash
+    # of every view that reads them, changes, and views that failed on the damage are redone
+    keys = {f: _file_key(Path(f), *stats[f], repair.get(f, "")) for f, _ in todo}
     tasks = [
         _FileTask(
             f,

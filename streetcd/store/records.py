@@ -6,9 +6,13 @@ with its :class:`RegionRecord`), and what a query returns (:class:`FlaggedRow`,
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from streetcd.errors import InputError
+from streetcd.types import Intrinsics, Pose, View
 
 
 @dataclass(frozen=True)
@@ -16,7 +20,8 @@ class RegionRecord:
     """One changed region located in 3D; coordinates are metres in the CRS.
 
     centroid, bbox_min, bbox_max are None when the region could not be located (none of its
-    pixels has a reference surface behind it).
+    pixels has a reference surface behind it). foot_class is the old cloud's class behind the
+    region's lowest pixels (:class:`streetcd.detect.regions.Region`), 0 when unknown.
     """
 
     label: int
@@ -26,6 +31,7 @@ class RegionRecord:
     bbox_min: tuple[float, float, float] | None
     bbox_max: tuple[float, float, float] | None
     dominant_class: int
+    foot_class: int = 0
 
     @property
     def located(self) -> bool:
@@ -40,6 +46,10 @@ class ViewRecord:
     A view is flagged when ``flagged`` is true; only then are score, regions and the mask
     path listed in the ``flagged`` table. ``center`` is the camera centre in the CRS.
     ``captured_at`` is when the image was taken (index timestamp format), None if unknown.
+    ``view`` is the view's lasting key (:func:`streetcd.run.plan.lasting_key`), ``image`` the
+    image's name (None: the part of the key before ``#``), ``image_path`` where it was read,
+    ``camera`` its pose and intrinsics as :func:`camera_json` writes them (None: not known,
+    e.g. a view that failed at planning).
     """
 
     view: str
@@ -59,6 +69,9 @@ class ViewRecord:
     total_s: float | None = None
     cpu_s: float | None = None
     captured_at: str | None = None
+    image: str | None = None
+    image_path: str | None = None
+    camera: str | None = None
 
     def __post_init__(self) -> None:
         if self.status not in ("done", "failed"):
@@ -80,6 +93,7 @@ class FlaggedRow:
     center: tuple[float, float, float] | None
     regions: tuple[RegionRecord, ...] = field(default=())
     captured_at: str | None = None
+    image: str | None = None
 
 
 @dataclass(frozen=True)
@@ -89,3 +103,30 @@ class SegmentRow:
     length_m: float
     bbox: tuple[float, float, float, float]
     polyline: list[list[float]]
+
+
+def camera_json(view: View) -> str:
+    """A view's camera as compact JSON: ``R`` (3x3, world→camera), ``t`` (3,) metres in the
+    CRS, and the intrinsics ``w, h, fx, fy, cx, cy`` (pixels; lens distortion is left out:
+    what the index uses it for, whether a point is in view, does not need it)."""
+    i = view.intrinsics
+    return json.dumps(
+        {
+            "R": np.round(view.pose.R, 9).tolist(),
+            "t": np.round(view.pose.t, 6).tolist(),
+            "w": i.width,
+            "h": i.height,
+            "fx": i.fx,
+            "fy": i.fy,
+            "cx": i.cx,
+            "cy": i.cy,
+        },
+        separators=(",", ":"),
+    )
+
+
+def camera_from_json(name: str, text: str) -> View:
+    """The :class:`View` (without its image) of :func:`camera_json`'s text."""
+    d = json.loads(text)
+    intr = Intrinsics(int(d["w"]), int(d["h"]), d["fx"], d["fy"], d["cx"], d["cy"])
+    return View(name, intr, Pose(np.asarray(d["R"], np.float64), np.asarray(d["t"], np.float64)))

@@ -3,11 +3,13 @@
 Writing it (streamed, resumable, parallel) is :mod:`streetcd.store.ingest`; the readers of
 the source files are :mod:`streetcd.io.readers`.
 
-Layout of ``STORE.zarr`` (format ``streetcd-tiles/2``, one zarr v3 hierarchy)::
+Layout of ``STORE.zarr`` (format ``streetcd-tiles/3``, one zarr v3 hierarchy)::
 
     zarr.json            root group; attribute ``streetcd_tiles``: the store settings
                          (tile_size_m, scale_m, origin, crs), ``files`` (a record per source
-                         path) and ``generation`` N, the index generation readers use
+                         path, with the ``arrays`` manifest of its points: dtype, shape and
+                         chunk rows per field) and ``generation`` N, the index generation
+                         readers use
     index/g<N>/          the tile index; group attribute ``sources``: [path, key] per row
         segments    (S, 11) int64  i, j, source row, start, count, min xyz, max xyz
         classes     (K, 3)  int64  segment row, class code, point count
@@ -41,6 +43,19 @@ scan-like MLS points (see benchmarks/ingest.py, ``coords`` table, and docs/BENCH
 int32 + Blosc-zstd stores xyz in fewer bytes than local float64 and decodes faster; the
 quantisation error (≤ 0.5 mm) is below the 1 mm scale every MLS archive is delivered at.
 
+**Integrity** (format 3). Every chunk of every array ends in a CRC-32C of its compressed
+bytes (zarr's ``crc32c`` codec after Blosc), so a truncated or bit-flipped chunk fails its
+read instead of decoding to garbage (Blosc trusts the sizes in its own header,
+zarr-developers/numcodecs#228). zarr reads a chunk that is not there as fill values, so the
+reader checks that each chunk it needs exists (every chunk is written, empty or not), that
+each array's metadata matches the manifest the root record holds for it, and that a tile
+reads back the point count its segments promise. Any of these fails the read with
+:class:`~streetcd.errors.CorruptFileError`, one line naming the tile, the source file, the
+field and the chunk, and the command that rewrites it (``streetcd ingest … --recheck``,
+which gives the source a new key, so the tile's fingerprint and the input hashes of the
+views that read it change). :mod:`streetcd.store.verify` checks a whole store. Stores of
+format 2 (no checksums) are refused with the command to re-ingest them.
+
 **Readers** trust only the root attribute: a generation and the points of a source exist for
 them once it names them (how ingest commits: :mod:`streetcd.store.ingest`). Readers take no
 lock. A TileStore opened before a commit that replaced a source cannot read that source's
@@ -64,11 +79,18 @@ from typing import Any
 
 import numpy as np
 import zarr
+from zarr.codecs import BloscCodec, Crc32cCodec
 
 from streetcd.errors import CorruptFileError, InputError, MissingInputError
 from streetcd.types import PointCloud
 
-FORMAT = "streetcd-tiles/2"
+FORMAT = "streetcd-tiles/3"
+# Every array's bytes codecs: Blosc-zstd, then a CRC-32C of the compressed chunk. zstd level 1
+# gives level 3's size, faster; the checksum must come last so that it covers what is stored.
+COMPRESSORS = (BloscCodec(cname="zstd", clevel=1, shuffle="shuffle"), Crc32cCodec())
+# zarr leaves out a chunk that is all fill value; the reader takes a missing chunk as damage,
+# so every chunk is written.
+ARRAY_CONFIG: Any = {"write_empty_chunks": True}
 INDEX_ATTR = "streetcd_tiles"
 LOCK_NAME = ".lock"
 _SEGMENT_COLUMNS = 11  # i, j, source row, start, count, min xyz, max xyz
@@ -137,15 +159,102 @@ def _cell_codes(i: np.ndarray, j: np.ndarray) -> np.ndarray:
 def _read_generation(
     path: Path, generation: int | None
 ) -> tuple[list[tuple[str, str]], np.ndarray, np.ndarray]:
-    """The [(path, key)] sources, segments (S, 11) and classes (K, 3) of one index generation."""
+    """The [(path, key)] sources, segments (S, 11) and classes (K, 3) of one index generation.
+
+    FileNotFoundError when the generation's folder is gone (a commit replaced it);
+    CorruptFileError, naming the file, when its metadata or a chunk is damaged or missing.
+    """
     if generation is None:  # a store that has no committed file yet
         return [], np.empty((0, _SEGMENT_COLUMNS), np.int64), np.empty((0, 3), np.int64)
-    group = zarr.open_group(str(path / "index" / f"g{generation}"), mode="r")
-    listed: Any = group.attrs.asdict()["sources"]
-    sources = [(str(p), str(k)) for p, k in listed]
-    segments = np.asarray(group["segments"][:], dtype=np.int64)  # type: ignore[index]
-    classes = np.asarray(group["classes"][:], dtype=np.int64)  # type: ignore[index]
-    return sources, segments, classes
+    folder = path / "index" / f"g{generation}"
+    if not (folder / "zarr.json").exists():
+        raise FileNotFoundError(folder)
+    group = _open_node(folder, zarr.open_group)
+    try:
+        listed: Any = group.attrs.asdict()["sources"]
+        sources = [(str(p), str(k)) for p, k in listed]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise _corrupt(folder / "zarr.json", f"attribute 'sources' is malformed ({exc})") from None
+    tables = {}
+    for name, columns in (("segments", _SEGMENT_COLUMNS), ("classes", 3)):
+        a = _open_node(folder / name, zarr.open_array)
+        if a.ndim != 2 or a.shape[1] != columns:
+            raise _corrupt(folder / name / "zarr.json", f"shape {a.shape}, expected (n, {columns})")
+        parts = [read_chunk(a, folder / name, c) for c in range(chunk_count(a))]
+        tables[name] = np.concatenate([np.empty((0, columns), np.int64), *parts]).astype(np.int64)
+    return sources, tables["segments"], tables["classes"]
+
+
+def _problem(exc: CorruptFileError) -> str:
+    """A store error as the part of a line that follows the source file's name."""
+    if isinstance(exc, ChunkError):
+        return f"field {exc.field!r}, chunk {exc.chunk} {exc.problem} ({exc.file})"
+    return str(exc)
+
+
+def _corrupt(file: Path, what: str) -> CorruptFileError:
+    return CorruptFileError(f"{file}: {what}")
+
+
+def _open_node(folder: Path, opener: Any) -> Any:
+    """``opener(folder)`` (a zarr group or array, read-only); garbage in its ``zarr.json`` is
+    a CorruptFileError naming that file."""
+    try:
+        return opener(str(folder), mode="r")
+    except FileNotFoundError:
+        raise _corrupt(folder / "zarr.json", "is missing") from None
+    except Exception as exc:  # zarr raises JSON, key, type and value errors for bad metadata
+        raise _corrupt(
+            folder / "zarr.json", f"is not valid zarr metadata ({type(exc).__name__}: {exc})"
+        ) from None
+
+
+def open_field(folder: Path, want: dict[str, Any], source: str) -> Any:
+    """The zarr array of one field of a source's points, in ``folder``, checked against its
+    manifest entry ``want`` ({dtype, shape, chunk_rows}); CorruptFileError names its file."""
+    a = _open_node(folder, zarr.open_array)
+    have = {"dtype": str(a.dtype), "shape": list(a.shape), "chunk_rows": a.chunks[0]}
+    expected = {k: want.get(k) for k in have}
+    if have != expected:
+        raise _corrupt(
+            folder / "zarr.json",
+            f"array of {source}, field {folder.name!r}, is {have}; the store's manifest says "
+            f"{expected}",
+        )
+    return a
+
+
+def chunk_count(a: Any) -> int:
+    """Chunks of zarr array ``a`` along its first axis (the only chunked one here)."""
+    return -(-a.shape[0] // a.chunks[0]) if a.shape[0] else 0
+
+
+def chunk_file(a: Any, folder: Path, c: int) -> Path:
+    """The file of chunk ``c`` (first axis) of array ``a`` stored in ``folder``."""
+    return folder / a.metadata.encode_chunk_key((c,) + (0,) * (a.ndim - 1))
+
+
+class ChunkError(CorruptFileError):
+    """Chunk ``chunk`` (file ``file``) of array ``field`` is missing or damaged."""
+
+    def __init__(self, file: Path, field: str, chunk: int, problem: str) -> None:
+        super().__init__(f"{file}: chunk {chunk} {problem}")
+        self.file, self.field, self.chunk, self.problem = file, field, chunk, problem
+
+
+def read_chunk(a: Any, folder: Path, c: int) -> np.ndarray:
+    """Rows of chunk ``c`` of array ``a`` (in ``folder``), decoded and checksum-checked.
+    :class:`ChunkError` when it is missing (zarr would return fill values) or cannot be
+    decoded (checksum, truncation)."""
+    rows = a.chunks[0]
+    file = chunk_file(a, folder, c)
+    if not file.is_file():
+        raise ChunkError(file, folder.name, c, "is missing")
+    try:
+        return np.asarray(a[c * rows : (c + 1) * rows])
+    except Exception as exc:
+        text = "checksum mismatch" if "checksum" in str(exc) else f"{type(exc).__name__}: {exc}"
+        raise ChunkError(file, folder.name, c, f"is damaged ({text})") from None
 
 
 # --- the process-wide tile cache ---------------------------------------------------------
@@ -297,7 +406,10 @@ class TileStore:
         self.tiles = _TileTable(self)
 
     @classmethod
-    def open(cls, path: str | Path) -> TileStore:
+    def open(cls, path: str | Path, *, check: bool = True) -> TileStore:
+        """Open the store at ``path``. MissingInputError where there is none; InputError for
+        another format; CorruptFileError, naming the file, for damaged metadata or index
+        (``check``: the index against the file records, :meth:`check_index`)."""
         path = Path(path).resolve()
         generation = None
         for _ in range(5):
@@ -308,10 +420,48 @@ class TileStore:
                 )
             generation = index["generation"]
             try:
-                return cls(path, index, *_read_generation(path, generation))
-            except FileNotFoundError:  # an ingest committed meanwhile: read the new index
-                time.sleep(0.05)
+                store = cls(path, index, *_read_generation(path, generation))
+                if check:
+                    store.check_index()
+                return store
+            except (FileNotFoundError, CorruptFileError) as exc:
+                # an ingest committed meanwhile (its old generation is gone): read the new index
+                again = read_index(path)
+                if again is not None and again["generation"] != generation:
+                    time.sleep(0.05)
+                    continue
+                if isinstance(exc, CorruptFileError):  # the index itself is damaged
+                    raise CorruptFileError(
+                        f"{exc}; the tile index is damaged, rebuild the store: "
+                        f"{reingest_command(index, path)}"
+                    ) from None
+                raise
         raise MissingInputError(f"{path}: index generation {generation} is missing")
+
+    def check_index(self) -> None:
+        """The index against the file records: each source's segments add up to the points
+        its record counts and lie inside its arrays; tile numbers fit the grid.
+        CorruptFileError naming the index otherwise (e.g. a chunk of it read as zeros)."""
+        seg = self._segments
+        where = self.path / "index" / f"g{self.index['generation']}"
+        if len(seg) and (
+            seg[:, 2].min() < 0 or seg[:, 2].max() >= len(self.sources) or seg[:, 3:5].min() < 0
+        ):
+            raise _corrupt(where, "segments name sources or rows that do not exist")
+        counts = np.bincount(seg[:, 2], weights=seg[:, 4], minlength=len(self.sources))
+        ends = np.zeros(len(self.sources), np.int64)
+        np.maximum.at(ends, seg[:, 2], seg[:, 3] + seg[:, 4])
+        for row, (path, _) in enumerate(self.sources):
+            shape = self._manifest(path)["xyz"]["shape"]
+            points = self.files[path].get("points")
+            if int(counts[row]) != points or ends[row] > shape[0]:
+                raise _corrupt(
+                    where,
+                    f"the segments of {path} hold {int(counts[row])} points up to row "
+                    f"{ends[row]}, its record {points} points in {shape[0]} rows",
+                )
+        if len(seg) and np.abs(seg[:, :2]).max() >= 2**31 - 1:
+            raise _corrupt(where, "a tile number is beyond the grid (|i|, |j| >= 2^31)")
 
     def _row(self, tid: str) -> int | None:
         """The row of tile ``tid`` ("i_j"), or None where the store has no such tile."""
@@ -418,9 +568,16 @@ class TileStore:
             else:
                 todo.append((tid, row, info, key))
         runs = {t[0]: self._segments[self._first[t[1]] : self._last[t[1]], 2:5] for t in todo}
-        chunks = self._chunks_for([run for r in runs.values() for run in r.tolist()])
+        chunks: dict[tuple[int, str, int], np.ndarray] = {}
+        for tid, *_ in todo:
+            self._chunks_for(tid, runs[tid].tolist(), chunks)
         for tid, _, info, key in todo:
             cloud = self._assemble(info, runs[tid], chunks)
+            if len(cloud) != info.count:  # a manifest or index that lies: never a short tile
+                raise CorruptFileError(
+                    f"{self.path}: tile {tid}: read {len(cloud)} points, its index says "
+                    f"{info.count}; check the store: streetcd verify {self.path}"
+                )
             if tc is not None:
                 for a in (
                     cloud.xyz,
@@ -436,38 +593,52 @@ class TileStore:
         return {tid: out[tid] for tid in tids}
 
     def _source_arrays(self, source: int) -> dict[str, Any]:
+        """{field: zarr array} of a source, each checked against the manifest its file
+        record holds (dtype, shape, chunk rows); CorruptFileError names the array's file."""
         arrays = self._arrays.get(source)
         if arrays is None:
-            key = self.sources[source][1]
-            group = zarr.open_group(str(self.path / "points" / key), mode="r")
-            arrays = self._arrays[source] = dict(group.arrays())
+            path, key = self.sources[source]
+            folder = self.path / "points" / key
+            arrays = {}
+            for name, want in self._manifest(path).items():
+                arrays[name] = open_field(folder / name, want, path)
+            self._arrays[source] = arrays
         return arrays
 
-    def _chunks_for(self, runs: list[list[int]]) -> dict[tuple[int, str, int], np.ndarray]:
-        """{(source, field, chunk number): its rows} for every chunk the (source, start,
-        count) ``runs`` touch, each read (decompressed) once."""
-        out: dict[tuple[int, str, int], np.ndarray] = {}
-        for source, start, count in runs:
-            for name, a in self._source_arrays(source).items():
-                rows = a.chunks[0]
-                for c in _chunk_numbers(start, count, rows):
-                    if (source, name, c) not in out:
-                        out[source, name, c] = self._read_chunk(source, name, a, c)
-        return out
-
-    def _read_chunk(self, source: int, name: str, a: Any, c: int) -> np.ndarray:
-        """Chunk ``c`` of field ``name`` of a source; a chunk that cannot be read (truncated,
-        corrupt) raises CorruptFileError naming the store, the source file and the field."""
-        rows = a.chunks[0]
+    def _manifest(self, path: str) -> dict[str, dict[str, Any]]:
+        """The ``arrays`` manifest of source ``path``: field → {dtype, shape, chunk_rows}."""
         try:
-            return np.asarray(a[c * rows : (c + 1) * rows])
-        except Exception as exc:
-            path, key = self.sources[source]
-            raise CorruptFileError(
-                f"{self.path}: points of {path} (points/{key}), field {name!r}, chunk {c}: "
-                f"cannot be read ({type(exc).__name__}: {exc}); `touch` the file and ingest "
-                "again to rewrite its points"
-            ) from exc
+            manifest: dict[str, dict[str, Any]] = self.files[path]["arrays"]
+            if not {"xyz", "classification"} <= set(manifest):
+                raise KeyError("xyz/classification")
+        except (KeyError, TypeError) as exc:
+            raise _corrupt(
+                self.path / "zarr.json", f"the record of {path} has no array manifest ({exc})"
+            ) from None
+        return manifest
+
+    def _chunks_for(
+        self, tid: str, runs: list[list[int]], out: dict[tuple[int, str, int], np.ndarray]
+    ) -> None:
+        """Put into ``out`` {(source, field, chunk number): its rows} every chunk the
+        (source, start, count) ``runs`` of tile ``tid`` touch that is not there yet, each
+        read (decompressed) once. A field whose metadata or chunk is missing, truncated or
+        corrupt raises CorruptFileError naming the tile, the source file, the file at fault
+        and the command that rewrites that source's points."""
+        for source, start, count in runs:
+            try:
+                arrays = self._source_arrays(source)
+                for name, a in arrays.items():
+                    folder = self.path / "points" / self.sources[source][1] / name
+                    for c in _chunk_numbers(start, count, a.chunks[0]):
+                        if (source, name, c) not in out:
+                            out[source, name, c] = read_chunk(a, folder, c)
+            except CorruptFileError as exc:
+                path = self.sources[source][0]
+                raise CorruptFileError(
+                    f"{self.path}: tile {tid}: points of {path}, {_problem(exc)}; "
+                    f"{repair_hint(path, self.path)}"
+                ) from None
 
     def _assemble(
         self, info: TileInfo, runs: np.ndarray, chunks: dict[tuple[int, str, int], np.ndarray]
@@ -526,14 +697,44 @@ def _chunk_numbers(start: int, count: int, rows: int) -> range:
 
 
 def read_index(path: Path) -> dict[str, Any] | None:
-    """The committed root record of the store at ``path``, or None where there is no store."""
-    if not (path / "zarr.json").exists():
+    """The committed root record of the store at ``path``, or None where there is no store.
+    CorruptFileError naming ``zarr.json`` when it is garbage; InputError, with the command
+    that re-ingests it, for a store of another format."""
+    root = path / "zarr.json"
+    if not root.exists():
         return None
-    attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
-    index: dict[str, Any] | None = attrs.get(INDEX_ATTR)  # type: ignore[assignment]
-    if index is not None and index.get("format") != FORMAT:
+    attrs = _open_node(path, zarr.open_group).attrs.asdict()
+    index: Any = attrs.get(INDEX_ATTR)
+    if index is None:
+        return None
+    if not isinstance(index, dict):
+        raise _corrupt(root, f"attribute {INDEX_ATTR!r} is not a record")
+    if index.get("format") != FORMAT:
         raise InputError(
-            f"{path}: tile store format {index.get('format')!r}, expected {FORMAT!r}; "
-            "ingest the archive into a new store"
+            f"{path}: tile store format {index.get('format')!r}, this streetcd reads {FORMAT!r} "
+            f"(chunk checksums); re-ingest into a new store: {reingest_command(index, path)}"
         )
-    return index
+    missing = [k for k in _INDEX_KEYS if k not in index]
+    if missing or not isinstance(index["files"], dict):
+        raise _corrupt(
+            root, f"attribute {INDEX_ATTR!r} lacks field(s) {', '.join(missing) or 'files'}"
+        )
+    return dict(index)
+
+
+_INDEX_KEYS = ("tile_size_m", "scale_m", "origin", "crs", "generation", "files")
+
+
+def reingest_command(index: dict[str, Any], path: Path) -> str:
+    """The ``streetcd ingest`` command that rebuilds the store at ``path`` (from the folder
+    all its sources share) into a new store next to it, with the same tile size."""
+    files = [f for f in (index.get("files") or {}) if isinstance(f, str)]
+    archive = os.path.commonpath(files) if files else "ARCHIVE"  # one file: the file itself
+    new = path.with_name(path.stem + "-v3" + path.suffix)
+    return f"streetcd ingest --archive {archive} --store {new} --tile-size {index.get('tile_size_m', 50)}"
+
+
+def repair_hint(source: str, store: Path) -> str:
+    """The command that rewrites the points of ``source`` in ``store`` (a new key, so the
+    views that read them are redone)."""
+    return f"rewrite them: streetcd ingest --archive {source} --store {store} --recheck"

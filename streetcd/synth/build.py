@@ -70,9 +70,14 @@ def _finish(
 
 
 def build_street_scene(
-    seed: int = 0, length_m: float = 150.0, changes: bool = True, crs: str = DEFAULT_CRS
+    seed: int = 0,
+    length_m: float = 150.0,
+    changes: bool = True,
+    crs: str = DEFAULT_CRS,
+    plain: bool = False,
 ) -> Scene:
-    """One street ``length_m`` long (≥ 30 m) from ``seed``; see :mod:`streetcd.synth.layout`."""
+    """One street ``length_m`` long (≥ 30 m) from ``seed``; see :mod:`streetcd.synth.layout`
+    (``plain``: uniformly painted objects and plain walls)."""
     if not (30.0 <= length_m <= 1000.0):
         raise InputError(f"synthetic street length_m = {length_m} must be in [30, 1000] m")
     rng = np.random.default_rng(seed)
@@ -81,7 +86,7 @@ def build_street_scene(
     origin = _origin(place)
     sun = _sun(place, heading)
     b = SceneBuilder()
-    lay, chs, dist = build_street(b, content, length_m, changes)
+    lay, chs, dist = build_street(b, content, length_m, changes, plain)
     for ob in b.objects:
         ob["street"] = 0
     street = freeze(b, "street0", heading, np.zeros(3), {"heading_deg": heading, **lay.as_dict()})
@@ -92,6 +97,8 @@ def build_street_scene(
         "changes": bool(changes),
         "crs": crs,
     }
+    if plain:  # only then: the default manifest stays byte for byte what it was
+        params["plain"] = True
     return _finish(b, [chs], dist, [street], origin, crs, sun, params)
 
 
@@ -101,6 +108,7 @@ def build_city_scene(
     length_m: float = 50.0,
     changes: bool = True,
     crs: str = DEFAULT_CRS,
+    plain: bool = False,
 ) -> Scene:
     """``n_streets`` streets on a grid of blocks (alternately east–west and north–south),
     far enough apart that no street sees another; changes in every street but the second."""
@@ -121,7 +129,7 @@ def build_city_scene(
         offset = np.array([(s % cols) * cell, (s // cols) * cell, 0.0])
         sb = SceneBuilder(first_id=b.first_id + len(b.objects))
         with_changes = changes and s != 1
-        lay, chs, dist = build_street(sb, contents[s], length_m, with_changes)
+        lay, chs, dist = build_street(sb, contents[s], length_m, with_changes, plain)
         for ob in sb.objects:
             ob["street"] = s
         streets.append(
@@ -138,6 +146,8 @@ def build_city_scene(
         "changes": bool(changes),
         "crs": crs,
     }
+    if plain:
+        params["plain"] = True
     return _finish(b, all_changes, disturb, streets, origin, crs, sun, params)
 
 
@@ -149,9 +159,10 @@ def load_scene(manifest: str | Path | dict[str, Any]) -> Scene:
         else json.loads(Path(manifest).read_text(encoding="utf-8"))
     )
     g = m["generator"]
+    plain = bool(g.get("plain", False))
     if g["kind"] == "street":
-        return build_street_scene(g["seed"], g["length_m"], g["changes"], g["crs"])
-    return build_city_scene(g["seed"], g["n_streets"], g["length_m"], g["changes"], g["crs"])
+        return build_street_scene(g["seed"], g["length_m"], g["changes"], g["crs"], plain)
+    return build_city_scene(g["seed"], g["n_streets"], g["length_m"], g["changes"], g["crs"], plain)
 
 
 # --- the camera strip -------------------------------------------------------------------
@@ -164,12 +175,16 @@ def camera_strip(
     size: tuple[int, int],
     rng: np.random.Generator,
     prefix: str = "IMG",
+    path: str = "vehicle",
 ) -> list[View]:
     """Views along the near sidewalk looking across the street, in the CRS.
 
     Spacing fills the street; the horizontal field of view is chosen for ~75 % overlap of
-    consecutive images on the far façades (clamped to 50–85°).
+    consecutive images on the far façades (clamped to 50–85°). ``path`` other than
+    ``vehicle``: a pedestrian's views (:func:`pedestrian_strip`).
     """
+    if path != "vehicle":
+        return pedestrian_strip(scene, street_index, n_images, size, rng, prefix, path)
     street = scene.streets[street_index]
     lay = street.layout
     L = lay["length_m"]
@@ -204,4 +219,59 @@ def camera_strip(
         pose = Pose.from_center(R, centre)
         name = f"{prefix}_{i:04d}.jpg"
         views.append(View(name, intr, pose, None, 0.0))
+    return views
+
+
+PEDESTRIAN_HFOV_DEG = 65.0  # a phone or action camera held by a walker
+
+
+def pedestrian_strip(
+    scene: Scene,
+    street_index: int,
+    n_images: int,
+    size: tuple[int, int],
+    rng: np.random.Generator,
+    prefix: str = "IMG",
+    path: str = "sidewalk-right",
+) -> list[View]:
+    """Views of a pedestrian walking +x on a sidewalk, camera 1.5–1.7 m above it, in the CRS.
+
+    ``sidewalk-right`` (the near sidewalk, −y): the walker looks 35–55° to the left of the
+    street's direction, across at the far side, whose objects are then 10–20 m away;
+    ``sidewalk-left`` (the far sidewalk, +y, 0.3 m inside its back edge, behind the
+    furniture): the walker looks along the street, 10–25° towards the road, at the objects
+    of its own sidewalk 8–20 m ahead. The walk is spread so that its views cover 0–L.
+    """
+    street = scene.streets[street_index]
+    lay = street.layout
+    L = lay["length_m"]
+    width, height = size
+    road_half, walk = lay["road_half_width_m"], lay["sidewalk_width_m"]
+    if path == "sidewalk-right":
+        y, yaw_deg, xs0, xs1 = -(road_half + 0.5 * walk), (35.0, 55.0), -5.0, L - 12.0
+        dy = 0.2
+    else:
+        y, yaw_deg, xs0, xs1 = road_half + walk - 0.3, (-25.0, -10.0), -8.0, L - 10.0
+        dy = 0.05  # the walker's lane between the furniture and the hedges is narrow
+    xs = np.linspace(xs0, xs1, n_images) if n_images > 1 else np.array([(xs0 + xs1) / 2])
+    f = width / 2 / math.tan(math.radians(PEDESTRIAN_HFOV_DEG) / 2)
+    intr = Intrinsics(width, height, f, f, (width - 1) / 2, (height - 1) / 2)
+    views = []
+    for i, x in enumerate(xs):
+        c = np.array(
+            [x + rng.uniform(-0.3, 0.3), y + rng.uniform(-dy, dy), CURB_H + rng.uniform(1.5, 1.7)]
+        )
+        yaw = math.radians(rng.uniform(*yaw_deg))
+        pitch = math.radians(rng.uniform(0.0, 5.0))
+        # yaw from +x towards +y (the street frame's left)
+        fwd = np.array(
+            [math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch), math.sin(pitch)]
+        )
+        roll = math.radians(rng.uniform(-1.5, 1.5))
+        side = np.array([-math.sin(yaw), math.cos(yaw), 0.0])  # the view's left, horizontal
+        up = np.array([0.0, 0.0, 1.0]) * math.cos(roll) + side * math.sin(roll)
+        pose_s = look_at(c, c + fwd, up)  # street frame
+        R = pose_s.R @ street.rotation.T  # local→camera
+        centre = street.to_local(pose_s.center[None])[0] + scene.origin
+        views.append(View(f"{prefix}_{i:04d}.jpg", intr, Pose.from_center(R, centre), None, 0.0))
     return views

@@ -21,6 +21,11 @@ point count), ``images`` (size, focal length), ``objects[i].bbox_local`` (local 
 bounds), ``object_counts`` (objects per type, for per-type tables such as the paper's
 Table 2), ``changes[i].views`` (images that see it), ``views[i].changed_pixels`` and
 ``visible_objects`` (ids with at least 20 epoch-2 pixels), ``disturbances``, ``streets``.
+
+A street of another kind (:mod:`streetcd.synth.kinds`: pedestrian paths, plain objects, a
+cloud without colours, sparse, other class codes) adds ``street_kind`` (its settings) and,
+with other codes, ``class_codes`` (scheme, roles, config file) to the manifest, and writes
+``streetcd.yaml`` with the class map; the default street's files are unchanged.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from datetime import date
 from pathlib import Path
 from typing import Any
@@ -41,6 +47,7 @@ from streetcd.geometry.camera import backproject, project
 from streetcd.io.las import write_las
 from streetcd.io.poses import write_colmap_text, write_opk_csv
 from streetcd.synth.build import build_city_scene, build_street_scene, camera_strip
+from streetcd.synth.kinds import StreetKind, resolve_kind
 from streetcd.synth.raycast import footprints
 from streetcd.synth.render import cast_view, shade_view
 from streetcd.synth.scanner import ScanParams, scan_street
@@ -55,6 +62,8 @@ IMAGE_TIME_START_S = 1_000_000.0  # epoch-2 image times, seconds
 STREET_SCAN = ScanParams()
 # the city demo scans more coarsely (~270 pts/m² at 10 m instead of ~420) to stay small
 CITY_SCAN = ScanParams(profile_spacing_m=0.12, angle_step_deg=0.35)
+CONFIG_NAME = "streetcd.yaml"  # the class map of a street written with other codes
+DEFAULT_KIND = StreetKind()
 
 
 def generate_street(
@@ -67,19 +76,39 @@ def generate_street(
     length_m: float = 150.0,
     changes: bool = True,
     progress: Progress | None = None,
+    kind: str | StreetKind | None = None,
+    path: str | None = None,
+    plain: bool | None = None,
+    colour: bool | None = None,
+    density: float | None = None,
+    point_spacing_m: float | None = None,
+    class_codes: str | None = None,
 ) -> Path:
     """Generate one street with ground truth into ``out_dir``; returns the manifest path.
 
     ``changes=False`` gives an unchanged street: epoch 2 has exactly epoch 1's geometry,
     without disturbances either (no cars that come or go, no pedestrians, same foliage),
     so every truth mask and don't-care mask is empty.
+
+    ``kind``: a preset of :data:`streetcd.synth.kinds.PRESETS` (or a StreetKind); ``path``,
+    ``plain``, ``colour``, ``density``, ``point_spacing_m``, ``class_codes`` override its
+    settings (see :mod:`streetcd.synth.kinds`). Without any, today's default street.
     """
     _check_args(n_images, size, pose_noise_px)
-    scene = build_street_scene(seed, length_m, changes)
+    sk = resolve_kind(
+        kind,
+        path=path,
+        plain=plain,
+        colour=colour,
+        density=density,
+        point_spacing_m=point_spacing_m,
+        class_codes=class_codes,
+    )
+    scene = build_street_scene(seed, length_m, changes, plain=sk.plain)
     rng = np.random.default_rng(seed)
     cam_rng = rng.spawn(4)[3]  # independent of the scene's streams
-    views = camera_strip(scene, 0, n_images, size, cam_rng)
-    return _write(out_dir, scene, [views], rng, pose_noise_px, progress)
+    views = camera_strip(scene, 0, n_images, size, cam_rng, path=sk.path)
+    return _write(out_dir, scene, [views], rng, pose_noise_px, progress, STREET_SCAN, sk)
 
 
 def generate_city(
@@ -93,18 +122,24 @@ def generate_city(
     length_m: float = 50.0,
     changes: bool = True,
     progress: Progress | None = None,
+    kind: str | StreetKind | None = None,
+    **settings: Any,
 ) -> Path:
     """A small city: ``n_streets`` streets in one CRS, one archive, one image folder and
-    one pose set; with ``changes`` every street but the second has changes."""
+    one pose set; with ``changes`` every street but the second has changes. ``kind`` and
+    ``settings`` as for :func:`generate_street`."""
     _check_args(images_per_street, size, pose_noise_px)
-    scene = build_city_scene(seed, n_streets, length_m, changes)
+    sk = resolve_kind(kind, **settings)
+    scene = build_city_scene(seed, n_streets, length_m, changes, plain=sk.plain)
     rng = np.random.default_rng(seed)
     cam_rngs = rng.spawn(4 + n_streets)[4:]
     views = [
-        camera_strip(scene, s, images_per_street, size, cam_rngs[s], prefix=f"S{s}_IMG")
+        camera_strip(
+            scene, s, images_per_street, size, cam_rngs[s], prefix=f"S{s}_IMG", path=sk.path
+        )
         for s in range(n_streets)
     ]
-    return _write(out_dir, scene, views, rng, pose_noise_px, progress, CITY_SCAN)
+    return _write(out_dir, scene, views, rng, pose_noise_px, progress, CITY_SCAN, sk)
 
 
 def _check_args(n_images: int, size: tuple[int, int], pose_noise_px: float) -> None:
@@ -127,10 +162,12 @@ def _write(
     pose_noise_px: float,
     progress: Progress | None,
     scan: ScanParams = STREET_SCAN,
+    kind: StreetKind = DEFAULT_KIND,
 ) -> Path:
     out = Path(out_dir)
     for sub in ("cloud", "images", "poses/colmap", "truth"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    scan = _scan_of(kind, scan)
     scan_rng, image_rng, noise_rng = rng.spawn(3)
     views = [v for vs in street_views for v in vs]
     n_scan = sum(
@@ -144,7 +181,7 @@ def _write(
         if progress is not None:
             progress(min(done[0], total), total)
 
-    cloud_files, n_points = _write_cloud(out, scene, scan, scan_rng, tick)
+    cloud_files, n_points = _write_cloud(out, scene, scan, scan_rng, tick, kind)
     view_rngs = image_rng.spawn(len(views))
     noise_rngs = noise_rng.spawn(len(views))
     # per-view error targets vary (log-normal) around an overall RMS of pose_noise_px
@@ -208,6 +245,8 @@ def _write(
     manifest = _manifest(
         scene, street_views, views, view_entries, cloud_files, n_points, scan, pose_noise_px, rms
     )
+    if not kind.is_default:
+        _describe_kind(out, manifest, kind)
     # the manifest comes last and atomically: its presence means the folder is complete
     path = out / "manifest.json"
     tmp = out / ".manifest.json.tmp"
@@ -222,12 +261,53 @@ def _imwrite(path: Path, image: np.ndarray, params: list[int] | None = None) -> 
         raise OSError(f"cannot write image {path}")
 
 
+def _scan_of(kind: StreetKind, scan: ScanParams) -> ScanParams:
+    """The scanner of a street kind: with ``point_spacing_m`` s, rays every s / 10 m rad
+    (s apart at 10 m) and each of the two scanners' profiles every 2 s along the road."""
+    s = kind.point_spacing_m
+    if s is None:
+        return scan
+    return replace(scan, profile_spacing_m=2.0 * s, angle_step_deg=math.degrees(s / 10.0))
+
+
+def _describe_kind(out: Path, manifest: dict[str, Any], kind: StreetKind) -> None:
+    """Manifest entries (and ``streetcd.yaml``) of a street that is not the default kind."""
+    manifest["street_kind"] = kind.as_dict()
+    manifest["scan"]["density"] = kind.density
+    if kind.path != "vehicle":
+        manifest["images"]["overlap_at_far_facade"] = None  # the formula assumes the strip
+    if kind.class_codes is None:
+        return
+    scheme = kind.scheme()
+    if scheme is None:  # every point unclassified: the detector's defaults are the config
+        manifest["classes"] = {"1": "unclassified"}
+        manifest["class_codes"] = {"scheme": kind.class_codes, "roles": {}, "config": None}
+        return
+    (out / CONFIG_NAME).write_text(scheme.config_text(), encoding="utf-8")
+    manifest["classes"] = scheme.names()
+    manifest["class_codes"] = {
+        "scheme": scheme.name,
+        "roles": {r: list(c) for r, c in scheme.roles.items()},
+        "by_type": dict(scheme.by_type),
+        "config": CONFIG_NAME,
+    }
+
+
 def _write_cloud(
-    out: Path, scene: Scene, scan: ScanParams, rng: np.random.Generator, tick: Callable[[int], None]
+    out: Path,
+    scene: Scene,
+    scan: ScanParams,
+    rng: np.random.Generator,
+    tick: Callable[[int], None],
+    kind: StreetKind = DEFAULT_KIND,
 ) -> tuple[list[str], int]:
     files: list[str] = []
     n_total = 0
     rngs = rng.spawn(len(scene.streets))
+    # spawned after the streets' streams, and only when thinning: the default is untouched
+    thin = rng.spawn(1)[0] if kind.density < 1.0 else None
+    codes = kind.scheme()
+    objects = {o["id"]: o for o in scene.objects}
     last = [0]
     for s, street in enumerate(scene.streets):
         L = street.layout["length_m"]
@@ -241,6 +321,15 @@ def _write_cloud(
         pts = scan_street(
             street, -3.0, L + 3.0, street.layout["scanner_y_m"], sun, rngs[s], scan, step
         )
+        if thin is not None:  # a sparser scanner: keep a random share of the points
+            keep = thin.random(len(pts["gps_time"])) < kind.density
+            pts = {key: v[keep] for key, v in pts.items()}
+        if codes is None:
+            cls = np.full(len(pts["cls"]), classes.UNCLASSIFIED, np.uint8)
+        elif kind.class_codes is None:
+            cls = pts["cls"]
+        else:
+            cls = codes.codes(pts["cls"], pts["obj"], objects)
         along = (pts["gps_time"] - scan.gps_time_start_s) * scan.speed_m_s  # metres driven
         tile = np.floor(along / CLOUD_TILE_M).astype(int)
         xyz_local = street.to_local(pts["xyz"])
@@ -250,13 +339,14 @@ def _write_cloud(
             write_las(
                 out / name,
                 xyz_local[m],
-                pts["cls"][m],
+                cls[m],
                 origin=scene.origin,
                 intensity=pts["intensity"][m],
-                rgb=pts["rgb"][m],
+                rgb=pts["rgb"][m] if kind.colour else None,
                 gps_time=pts["gps_time"][m] + 1000.0 * s,
                 crs=scene.crs,
                 creation_date=LAS_DATE,
+                point_format=7 if kind.colour else 6,
             )
             files.append(name)
         n_total += len(xyz_local)

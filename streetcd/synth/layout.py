@@ -44,6 +44,18 @@ CAR_COLOURS = [
 ]
 SIGN_COLOURS = [(0.05, 0.25, 0.65), (0.75, 0.08, 0.08), (0.95, 0.75, 0.05), (0.05, 0.45, 0.2)]
 GREENS = [(0.25, 0.42, 0.12), (0.18, 0.35, 0.12), (0.32, 0.45, 0.15), (0.2, 0.38, 0.2)]
+# uniform paints of plain streets (sRGB): municipal greys, greens, white, black, ochre, blue, red
+PAINTS = [
+    (0.45, 0.47, 0.48),
+    (0.2, 0.25, 0.22),
+    (0.85, 0.85, 0.82),
+    (0.1, 0.1, 0.11),
+    (0.6, 0.45, 0.1),
+    (0.15, 0.25, 0.5),
+    (0.7, 0.1, 0.08),
+    (0.62, 0.6, 0.55),
+]
+PAINTED_TYPES = ("pole", "sign", "board", "bin", "bench", "railing")
 
 
 def lin(c: tuple[float, float, float]) -> tuple[float, float, float]:
@@ -278,6 +290,32 @@ def hedge(b: SceneBuilder, x0: float, x1: float, y: float, epochs: int, rng) -> 
         r = (rng.uniform(0.35, 0.5), rng.uniform(0.35, 0.45), h * rng.uniform(0.45, 0.6))
         b.ell(oid, C.VEGETATION, M.FOLIAGE, green, c, r, tex=(seed,), epochs=epochs)
     return oid
+
+
+def wall(b: SceneBuilder, x0: float, x1: float, y: float, rng) -> int:
+    """Plain garden wall (class building, one uniform paint, no texture) 3.0–3.6 m high, so
+    that it is the whole background of a board 1 m in front of it seen from 1.7 m."""
+    oid = b.new_object("wall", C.BUILDING, BOTH)
+    colour = lin(FACADE_COLOURS[int(rng.integers(len(FACADE_COLOURS)))])
+    h = float(rng.uniform(3.0, 3.6))
+    b.box(oid, C.BUILDING, M.PAINT, colour, (x0, y - 0.12, 0.0), (x1, y + 0.12, h))
+    return oid
+
+
+def paint_plain(b: SceneBuilder, rng: np.random.Generator, changes: list[dict]) -> None:
+    """Repaint the street inventory (:data:`PAINTED_TYPES`) in one uniform colour per object
+    with no texture; a moved object keeps its paint."""
+    same = {ch["to_object"]: ch["from_object"] for ch in changes if "to_object" in ch}
+    colour: dict[int, tuple[float, float, float]] = {}
+    for ob in b.objects:  # ids ascend, and a moved object's old one comes first
+        if ob["type"] in PAINTED_TYPES:
+            oid = ob["id"]
+            pick = lin(PAINTS[int(rng.integers(len(PAINTS)))])
+            colour[oid] = colour.get(same.get(oid, -1), pick)
+    for i, oid in enumerate(b.obj):
+        if oid in colour:
+            b.mat[i] = M.PAINT
+            b.color[i] = colour[oid]
 
 
 def tree(b: SceneBuilder, x: float, y: float, rng, grow: np.random.Generator | None) -> int:
@@ -515,14 +553,24 @@ def building(b: SceneBuilder, x0: float, x1: float, y_face: float, side: float, 
 
 
 def build_street(
-    b: SceneBuilder, rng: np.random.Generator, length: float, with_changes: bool
+    b: SceneBuilder,
+    rng: np.random.Generator,
+    length: float,
+    with_changes: bool,
+    plain: bool = False,
 ) -> tuple[StreetLayout, list[dict], list[dict]]:
     """Fill ``b`` with one street; returns its layout, change instances and disturbances.
 
     Change instances carry ``objects`` (ids) and ``kind`` (added / removed / moved /
     replaced); instance ids are assigned later by the caller.
+
+    ``plain``: plain walls along the property line behind the far sidewalk's middle lane
+    (behind every change there, and half the other segments), the inventory painted
+    uniformly (:func:`paint_plain`).
     """
     base, chg, dist = rng.spawn(3)
+    # the plain street's extra draws come from their own stream, spawned only when asked
+    paint = rng.spawn(1)[0] if plain else None
     lay = StreetLayout(
         length=float(length),
         road_half=float(base.uniform(3.25, 3.75)),
@@ -541,6 +589,11 @@ def build_street(
     parking = Lane(lo - 10, hi + 10)
     changes = _changes(b, lay, chg, curb, mid, line, with_changes)
     disturb: list[dict] = []
+    if paint is not None:  # a plain wall ~1 m behind each change of the middle lane
+        for x0, x1 in list(mid.taken):
+            if line.free(x0 - 1.5, x1 + 1.5):
+                line.take(x0 - 1.5, x1 + 1.5)
+                wall(b, x0 - 1.5, x1 + 1.5, lay.far_line_y, paint)
 
     # regular furniture, both epochs
     for x in np.arange(base.uniform(2, 12), hi, base.uniform(22, 30)):
@@ -571,7 +624,10 @@ def build_street(
         seg = float(base.uniform(4, 12))
         if line.free(x, x + seg):
             line.take(x, x + seg)
-            if base.random() < 0.5:
+            r = base.random()
+            if paint is not None and paint.random() < 0.5:
+                wall(b, x, x + seg, lay.far_line_y, paint)
+            elif r < 0.5:
                 railing(b, x, x + seg, lay.far_line_y, BOTH, base)
             else:
                 hedge(b, x, x + seg, lay.far_line_y, BOTH, base)
@@ -606,6 +662,8 @@ def build_street(
                     y = lay.far_mid_y + float(dist.uniform(-0.6, 0.3))
                     disturb.append({"object": pedestrian(b, x, y, dist), "kind": "pedestrian"})
                     break
+    if paint is not None:
+        paint_plain(b, paint, changes)
     return lay, changes, disturb
 
 

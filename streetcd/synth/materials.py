@@ -12,6 +12,7 @@ FACADE     floor height m, bay width m, variant (0 plaster, 1 brick), seed
 SIGN       facing (+1: face towards +y, −1: towards −y), symbol variant, seed, –
 BOARD      facing, seed, –, –
 FOLIAGE    seed, –, –, –
+PAINT      – (uniform single-colour paint, no texture: the base colour everywhere)
 others     seed in tex[0] where noise needs one
 =========  ==========================================================================
 """
@@ -35,6 +36,7 @@ SIGN, BOARD, WOOD, CARPAINT, CABIN, RUBBER, CLOTH, GRASS, SKIN, LAMP = (
     16,
     17,
 )
+PAINT = 18  # plain paint: albedo is the base colour, with no texture at all
 
 
 def srgb_to_linear(c: tuple[float, float, float]) -> tuple[float, float, float]:
@@ -255,4 +257,4 @@ def albedo(mat, p, tex, cr, cg, cb, x, y, z, nx, ny, nz):  # pragma: no cover - 
         return cr * (0.6 + 0.8 * n), cg * (0.6 + 0.8 * n), cb * (0.6 + 0.8 * n)
     if mat == LAMP:
         return 0.9, 0.9, 0.85
-    return cr, cg, cb
+    return cr, cg, cb  # PAINT and any material without a texture

@@ -1,0 +1,202 @@
+"""Merging per-view change regions in 3D: which regions are one physical change, and where
+that change stands.
+
+Pure numpy kernels (no I/O); :mod:`streetcd.store.objects` feeds them the regions of a
+segment's flagged views, each located through its view's old-surface depth
+(:mod:`streetcd.detect.regions`). Coordinates are metres in one frame (the CRS).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+MAX_SIZE_RATIO = 5.0  # two views of one object: apparent sizes within this factor
+
+
+def link_regions(
+    centroids: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    margin_m: float = 0.5,
+    max_link_m: float = 4.0,
+    cameras: np.ndarray | None = None,
+    view_ids: np.ndarray | None = None,
+    max_ray_gap_m: float = 0.5,
+    object_ids: np.ndarray | None = None,
+    pixels: np.ndarray | None = None,
+) -> np.ndarray:
+    """Connected components of regions that are one change in 3D.
+
+    centroids, lo, hi : (N, 3) float64, metres: each region's centroid and box corners,
+    located on the old surface behind its pixels. Two regions are linked when
+
+    * their boxes, each grown by ``margin_m``, overlap on all three axes and their
+      centroids are at most ``max_link_m`` apart (a large box, a region seen against a far
+      wall, must not swallow every small one near it): the same spot of the old surface;
+    * or, for regions of two different views (``cameras`` (N, 3) their camera centres,
+      ``view_ids`` (N,) which view each is), their lines of sight (camera → centroid) pass
+      within ``max_ray_gap_m`` of each other at a point in front of both old surfaces that
+      each region covers when seen from its camera (:func:`covers`): a new object standing
+      before the surface, which each view sees against another part of it.
+
+    Links are taken closest first (centroid distance, or the gap between the lines of
+    sight), and never join two groups that both hold a region of the same view: the
+    detector already told a view's regions apart (a car beside a new board are two
+    regions in every view that sees both, and stay two objects however close they stand).
+    The exception: two regions of one view are one object split in two, and are joined
+    first, when their boxes overlap on every axis by at least half the smaller one's extent,
+    or when they touch and lie on the same kind of object of the old cloud (``object_ids``
+    (N,): the old object's class under each region, -1 for none; a board cut by a post).
+
+    ``pixels`` (N,): with it, lines of sight link only regions of about the same apparent
+    size (within a factor :data:`MAX_SIZE_RATIO`): one object seen from two nearby views;
+    a speck of noise whose line of sight happens to cross a large region's is no evidence.
+
+    Returns (N,) int64 component labels 0, 1, … numbered in order of each component's
+    first region, so the result depends only on the order of the input.
+    """
+    n = len(centroids)
+    parent = np.arange(n)
+    if view_ids is None:
+        view_ids = np.arange(n)
+    members: dict[int, set[int]] = {i: {int(view_ids[i])} for i in range(n)}
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    if n:
+        touch = np.all(
+            (lo[:, None, :] - margin_m <= hi[None, :, :] + margin_m)
+            & (lo[None, :, :] - margin_m <= hi[:, None, :] + margin_m),
+            axis=2,
+        )
+        dist = np.linalg.norm(centroids[:, None, :] - centroids[None, :, :], axis=2)
+        cost = np.where(touch & (dist <= max_link_m), dist, np.inf)
+        if cameras is not None:
+            gap = _rays_meet(centroids, lo, hi, cameras, view_ids, margin_m, max_ray_gap_m)
+            if pixels is not None:
+                px = np.maximum(np.asarray(pixels, dtype=np.float64), 1.0)
+                alike = np.maximum(px[:, None] / px[None, :], px[None, :] / px[:, None])
+                gap = np.where(alike <= MAX_SIZE_RATIO, gap, np.inf)
+            cost = np.minimum(cost, gap)
+        same_view = view_ids[:, None] == view_ids[None, :]
+        split = _overlap_half(lo, hi)
+        if object_ids is not None:
+            on_one = (object_ids[:, None] == object_ids[None, :]) & (object_ids[:, None] >= 0)
+            split |= on_one & touch
+        same = same_view & split
+        for i, j in zip(*np.nonzero(np.triu(same, k=1)), strict=True):
+            a, b = find(int(i)), find(int(j))
+            if a != b:
+                keep, gone = min(a, b), max(a, b)
+                parent[gone] = keep
+                members[keep] |= members.pop(gone)
+        i_s, j_s = np.nonzero(np.triu(np.isfinite(cost), k=1))
+        for k in np.lexsort((j_s, i_s, cost[i_s, j_s])):  # closest first, ties by index
+            a, b = find(int(i_s[k])), find(int(j_s[k]))
+            if a == b or members[a] & members[b]:
+                continue
+            keep, gone = min(a, b), max(a, b)
+            parent[gone] = keep
+            members[keep] |= members.pop(gone)
+    roots = np.array([find(i) for i in range(n)], dtype=np.int64)
+    _, first, labels = np.unique(roots, return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))  # renumber by first appearance
+    return order[labels].astype(np.int64)
+
+
+def _overlap_half(lo: np.ndarray, hi: np.ndarray, floor_m: float = 0.1) -> np.ndarray:
+    """(N, N) bool: boxes whose overlap on every axis is at least half the smaller extent
+    there (extents below ``floor_m`` count as ``floor_m``: a flat region still overlaps)."""
+    ext = np.maximum(hi - lo, floor_m)
+    inter = np.minimum(hi[:, None, :], hi[None, :, :]) - np.maximum(lo[:, None, :], lo[None, :, :])
+    need = 0.5 * np.minimum(ext[:, None, :], ext[None, :, :])
+    return np.all(inter >= need, axis=2)
+
+
+def covers(
+    point: np.ndarray,
+    camera: np.ndarray,
+    centroid: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    margin_m: float = 0.5,
+) -> bool:
+    """Whether a region (located on the old surface: ``centroid``, box ``lo``–``hi``) covers
+    ``point`` as its camera sees it: the line of sight through ``point``, carried to the
+    region's depth, lands in the box grown by ``margin_m``. All (3,) metres."""
+    d = point - camera
+    dist = float(np.linalg.norm(d))
+    if dist < 1e-6:
+        return False
+    on_surface = camera + d * (float(np.linalg.norm(centroid - camera)) / dist)
+    return bool(np.all(on_surface >= lo - margin_m) and np.all(on_surface <= hi + margin_m))
+
+
+def _rays_meet(
+    centroids: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    cameras: np.ndarray,
+    view_ids: np.ndarray,
+    margin_m: float,
+    max_gap_m: float,
+) -> np.ndarray:
+    """(N, N) float: for pairs of regions of different views whose lines of sight meet
+    (see :func:`link_regions`), the gap between the lines there (metres); inf otherwise."""
+    n = len(centroids)
+    out = np.full((n, n), np.inf)
+    has = np.all(np.isfinite(cameras), axis=1)
+    d = centroids - cameras
+    length = np.linalg.norm(d, axis=1)
+    u = d / np.where(length > 0, length, 1.0)[:, None]
+    for i in range(n):
+        if not has[i]:
+            continue
+        for j in range(i + 1, n):
+            if not has[j] or view_ids[i] == view_ids[j]:
+                continue
+            # Closest points of the two lines c_i + s u_i and c_j + t u_j.
+            w = cameras[i] - cameras[j]
+            b = float(u[i] @ u[j])
+            den = 1.0 - b * b
+            if den < 1e-4:  # (nearly) parallel: no depth from this pair
+                continue
+            s = (b * float(u[j] @ w) - float(u[i] @ w)) / den
+            t = (float(u[j] @ w) - b * float(u[i] @ w)) / den
+            if not (0.5 < s <= length[i] + margin_m and 0.5 < t <= length[j] + margin_m):
+                continue
+            pi, pj = cameras[i] + s * u[i], cameras[j] + t * u[j]
+            gap = float(np.linalg.norm(pi - pj))
+            if gap > max_gap_m:
+                continue
+            x = (pi + pj) / 2
+            if covers(x, cameras[i], centroids[i], lo[i], hi[i], margin_m) and covers(
+                x, cameras[j], centroids[j], lo[j], hi[j], margin_m
+            ):
+                out[i, j] = out[j, i] = gap
+    return out
+
+
+def nearest_to_rays(origins: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, float]:
+    """The point nearest (least squares) to the rays from ``origins`` through ``targets``
+    ((K, 3) metres each, K ≥ 2), and its RMS distance to them (metres).
+
+    The rays are the views' lines of sight through a change's region centroids; where they
+    meet is the change itself (for an added object, in front of the old surface the regions
+    were located on). Rays that are almost parallel (all within ~1°) give no depth: the
+    mean target is returned with an infinite distance.
+    """
+    d = targets - origins
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # (K, 3, 3): off-ray component
+    a = proj.sum(axis=0)
+    b = np.einsum("kij,kj->i", proj, origins)
+    if np.linalg.cond(a) > 1e4 or len(origins) < 2:
+        return targets.mean(axis=0), float("inf")
+    x = np.linalg.solve(a, b)
+    off = np.einsum("kij,kj->ki", proj, x[None] - origins)
+    return x, float(np.sqrt(np.mean(np.sum(off**2, axis=1))))

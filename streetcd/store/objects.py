@@ -1,0 +1,668 @@
+"""Change objects: one record per physical change, merged in 3D from the flagged views'
+regions of every night, with the operator's review of it.
+
+The change index lists per-view regions (:mod:`streetcd.store.index`); a change seen by
+twelve views is twelve regions. :func:`rebuild_objects` merges a segment's located regions
+(all nights) into objects (:func:`streetcd.geometry.merge.link_regions`), finds where each
+stands (the least-squares meeting point of the views' lines of sight through their regions,
+:func:`streetcd.geometry.merge.nearest_to_rays`), the views that see the spot without a
+change, a confidence from how well the views agree, and whether it is a transient (a car,
+a pedestrian) rather than a change of the street. It rewrites the segment's objects in one
+transaction from what the index holds, so it is deterministic and can be run again at any
+time (a run does it for every segment it planned, at its end).
+
+An object's id is ``o-`` and 12 hex digits of a SHA-1 over its segment and the first
+region that saw it (earliest night, then view key and label): the same change keeps its id
+as later nights add views to it.
+
+Reviews (:func:`record_review`) live in their own table, keyed by object id, with the box
+the operator looked at. A reviewed object keeps its id and review: regions of later nights
+whose centroid lies in that box (grown by :data:`REVIEW_TOLERANCE_M`) join it and raise no
+new object. An object reviewed ``fixed`` that is seen again after the review is a new
+change (the street changed again), as is a change outside the box.
+
+:func:`list_objects` is the read side (the contract of ``docs/DECISIONS.md``): it opens the
+index read-only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import sqlite3
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from streetcd import classes as C
+from streetcd.config import ClassMap
+from streetcd.errors import InputError, MissingInputError, StreetcdError
+from streetcd.geometry.merge import covers, link_regions, nearest_to_rays
+from streetcd.store.index import ChangeIndex, _check_bbox, parse_since, utc_now
+from streetcd.store.records import camera_from_json
+
+log = logging.getLogger(__name__)
+
+REVIEW_STATUSES = ("confirmed", "false_alarm", "fixed")
+LIST_STATUSES = ("awaiting", "transient", *REVIEW_STATUSES)
+KINDS = ("added", "removed", "unknown")
+
+MERGE_MARGIN_M = 0.5  # regions whose boxes come this close are one change...
+MAX_LINK_M = 4.0  # ...when their centroids are this close too
+MAX_RAY_GAP_M = 1.0  # or when two views' lines of sight through them pass this close
+REVIEW_TOLERANCE_M = 0.5  # a later region inside a reviewed box (grown by this) joins it
+SEE_RANGE_M = 30.0  # a view "sees the spot" when the spot is in its image and this close
+IN_FRONT_M = 1.0  # lines of sight meeting this far before the old surface: an added object
+MIN_REGION_FRACTION = 0.002  # run.min_region_fraction's default
+MAX_RAY_MISS_M = 1.0  # lines of sight that miss each other by more do not locate a change
+
+# Where the old cloud says the change is on the road, or was a parked car, a vehicle or a
+# pedestrian came or went (issue 17): not a change of the street.
+ROAD_CLASSES = (C.ROAD,)
+VEHICLE_CLASSES = (C.CAR, C.PEDESTRIAN)
+OBJECT_CLASSES = (C.POLE, C.SIGN, C.RAILING, C.FURNITURE, C.VEGETATION)
+
+
+@dataclass
+class _Region:
+    view: str
+    label: int
+    pixels: int
+    score: float
+    centroid: np.ndarray  # (3,) metres
+    lo: np.ndarray
+    hi: np.ndarray
+    cls: int
+    night: str  # YYYY-MM-DD: capture date, else detection date
+    seen_at: str  # full timestamp, for reviews
+    camera: np.ndarray | None  # (3,) camera centre
+    image_px: int | None  # pixels in the view's image (None: camera unknown)
+    foot: int = 0  # old cloud's class behind the region's lowest pixels
+
+
+# --- building ---------------------------------------------------------------------------
+
+
+GroundClass = Callable[[float, float], "int | None"]
+
+
+def rebuild_objects(
+    idx: ChangeIndex, segment_ids: Iterable[str], ground_class: GroundClass | None = None
+) -> int:
+    """Rewrite the change objects of ``segment_ids`` from the index's regions, one
+    transaction per segment. Returns how many objects they now hold.
+
+    ground_class : (x, y) in the CRS → the old cloud's class on the ground there (None:
+    no points), e.g. :func:`ground_classes`; with it, an added object standing on the road
+    is a transient. Without it that test is skipped.
+    """
+    total = 0
+    for seg in sorted(set(segment_ids)):
+        with idx.transaction():
+            total += _rebuild_segment(idx.conn, seg, ground_class)
+    return total
+
+
+def ground_classes(
+    store: str | Path, radius_m: float = 0.75, class_map: ClassMap | None = None
+) -> GroundClass:
+    """``(x, y) → class``: the most frequent class of the tile store's points within
+    ``radius_m`` (x/y) of the point, in streetcd's codes (the store's own codes read
+    through ``class_map``, the config's ``detect.classes``; its default without one), None
+    where there are none. The store is opened on the first call, tiles read through the
+    process's tile cache; a store that cannot be opened is logged once and answers None (the
+    road test is then skipped, nothing fails)."""
+    roles = np.asarray((class_map or ClassMap()).table(), np.uint8)
+    from streetcd.store.tiles import TileStore
+
+    opened: list[Any] = []
+
+    def at(x: float, y: float) -> int | None:
+        if not opened:
+            try:
+                opened.append(TileStore.open(store))
+            except (StreetcdError, OSError) as exc:
+                log.warning("change objects: no road test, tile store unreadable: %s", exc)
+                opened.append(None)
+        tiles = opened[0]
+        if tiles is None:
+            return None
+        found = tiles.tiles_in_bbox(x - radius_m, y - radius_m, x + radius_m, y + radius_m)
+        codes = []
+        for cloud in tiles.read_tiles([t.id for t in found]).values():
+            xy = cloud.xyz[:, :2] + cloud.origin[:2]
+            near = np.sum((xy - (x, y)) ** 2, axis=1) <= radius_m**2
+            codes.append(roles[cloud.classification[near]])
+        allc = np.concatenate(codes) if codes else np.zeros(0, np.uint8)
+        return int(np.bincount(allc).argmax()) if allc.size else None
+
+    return at
+
+
+def _rebuild_segment(
+    conn: sqlite3.Connection, segment: str, ground_class: GroundClass | None = None
+) -> int:
+    regions = _load_regions(conn, segment)
+    _drop_objects(conn, segment)
+    reviews = conn.execute(
+        "SELECT * FROM reviews WHERE segment_id = ? ORDER BY object_id", (segment,)
+    ).fetchall()
+    groups: list[tuple[str | None, list[_Region]]] = []
+    free = list(regions)
+    for rv in reviews:
+        mine, free = _claim(rv, free)
+        groups.append((rv["object_id"], mine))
+    if free:
+        view_of = {v: k for k, v in enumerate(sorted({g.view for g in free}))}
+        labels = link_regions(
+            np.array([g.centroid for g in free]),
+            np.array([g.lo for g in free]),
+            np.array([g.hi for g in free]),
+            MERGE_MARGIN_M,
+            MAX_LINK_M,
+            cameras=np.array([np.full(3, np.nan) if g.camera is None else g.camera for g in free]),
+            view_ids=np.array([view_of[g.view] for g in free]),
+            max_ray_gap_m=MAX_RAY_GAP_M,
+            object_ids=np.array([g.cls if g.cls in OBJECT_CLASSES else -1 for g in free]),
+            pixels=np.array([g.pixels for g in free]),
+        )
+        for k in range(int(labels.max()) + 1):
+            groups.append((None, [g for g, lab in zip(free, labels, strict=True) if lab == k]))
+    views = _views_near(conn, segment)
+    n = 0
+    for object_id, members in groups:
+        if not members and object_id is None:
+            continue
+        n += _write_object(conn, segment, object_id, members, views, ground_class)
+    return n
+
+
+def _claim(review: sqlite3.Row, regions: list[_Region]) -> tuple[list[_Region], list[_Region]]:
+    """The regions a reviewed object keeps (centroid in its reviewed box, grown by the
+    tolerance; for ``fixed``, only those seen up to the review) and the others."""
+    lo = np.array([review["min_x"], review["min_y"], review["min_z"]]) - REVIEW_TOLERANCE_M
+    hi = np.array([review["max_x"], review["max_y"], review["max_z"]]) + REVIEW_TOLERANCE_M
+    mine, rest = [], []
+    for g in regions:
+        inside = bool(np.all(g.centroid >= lo) and np.all(g.centroid <= hi))
+        if inside and (review["status"] != "fixed" or g.seen_at <= review["at"]):
+            mine.append(g)
+        else:
+            rest.append(g)
+    return mine, rest
+
+
+def _load_regions(conn: sqlite3.Connection, segment: str) -> list[_Region]:
+    rows = conn.execute(
+        "SELECT f.view, g.label, g.pixels, g.score, g.x, g.y, g.z, g.min_x, g.min_y, g.min_z,"
+        " g.max_x, g.max_y, g.max_z, g.dominant_class, g.foot_class,"
+        " coalesce(f.captured_at, f.detected_at) AS seen, v.center_x, v.center_y, v.center_z,"
+        " v.camera"
+        " FROM regions g JOIN flagged f ON f.id = g.flagged_id JOIN views v ON v.view = f.view"
+        " WHERE f.segment_id = ? AND g.x IS NOT NULL ORDER BY seen, f.view, g.label",
+        (segment,),
+    ).fetchall()
+    out = []
+    for r in rows:
+        cam = (
+            None
+            if r["center_x"] is None
+            else np.array([r[k] for k in ("center_x", "center_y", "center_z")])
+        )
+        out.append(
+            _Region(
+                r["view"],
+                int(r["label"]),
+                int(r["pixels"]),
+                float(r["score"]),
+                np.array([r["x"], r["y"], r["z"]], dtype=np.float64),
+                np.array([r["min_x"], r["min_y"], r["min_z"]], dtype=np.float64),
+                np.array([r["max_x"], r["max_y"], r["max_z"]], dtype=np.float64),
+                int(r["dominant_class"]),
+                r["seen"][:10],
+                r["seen"],
+                cam,
+                _image_px(r["camera"]),
+                int(r["foot_class"]),
+            )
+        )
+    # Night first, so that an object's first region is its first night's.
+    out.sort(key=lambda g: (g.night, g.view, g.label))
+    return out
+
+
+def _image_px(camera: str | None) -> int | None:
+    if camera is None:
+        return None
+    d = json.loads(camera)
+    return int(d["w"]) * int(d["h"])
+
+
+def _drop_objects(conn: sqlite3.Connection, segment: str) -> None:
+    conn.execute(
+        "DELETE FROM object_views WHERE object_id IN"
+        " (SELECT object_id FROM objects WHERE segment_id = ?)",
+        (segment,),
+    )
+    conn.execute(
+        "DELETE FROM objects_rtree WHERE id IN (SELECT id FROM objects WHERE segment_id = ?)",
+        (segment,),
+    )
+    conn.execute("DELETE FROM objects WHERE segment_id = ?", (segment,))
+
+
+@dataclass
+class _ViewGeom:
+    key: str
+    night: str
+    status: str
+    view: Any  # streetcd.types.View, or None without a camera
+
+
+def _views_near(conn: sqlite3.Connection, segment: str) -> list[_ViewGeom]:
+    """The done views with a camera whose centre is within SEE_RANGE_M of the segment's box."""
+    box = conn.execute(
+        "SELECT min_x, min_y, max_x, max_y FROM segments WHERE segment_id = ?", (segment,)
+    ).fetchone()
+    if box is None:
+        rows = conn.execute(
+            "SELECT view, camera, coalesce(captured_at, processed_at) AS seen FROM views"
+            " WHERE segment_id = ? AND status = 'done' AND camera IS NOT NULL",
+            (segment,),
+        ).fetchall()
+    else:
+        r = SEE_RANGE_M
+        rows = conn.execute(
+            "SELECT view, camera, coalesce(captured_at, processed_at) AS seen FROM views"
+            " WHERE status = 'done' AND camera IS NOT NULL AND center_x BETWEEN ? AND ?"
+            " AND center_y BETWEEN ? AND ?",
+            (box[0] - r, box[2] + r, box[1] - r, box[3] + r),
+        ).fetchall()
+    return [
+        _ViewGeom(
+            row["view"],
+            (row["seen"] or "")[:10],
+            "done",
+            camera_from_json(row["view"], row["camera"]),
+        )
+        for row in sorted(rows, key=lambda x: x["view"])
+    ]
+
+
+def sees(view: Any, point: np.ndarray, max_range_m: float = SEE_RANGE_M) -> bool:
+    """Whether ``point`` ((3,) metres, CRS) is in the image of ``view`` (a
+    :class:`streetcd.types.View`), in front of it and within ``max_range_m``. Occlusion is
+    not known here (the index keeps no depth), so a spot behind a wall counts as seen."""
+    x = view.pose.R @ point + view.pose.t
+    if x[2] <= 0.1 or float(np.linalg.norm(x)) > max_range_m:
+        return False
+    i = view.intrinsics
+    u, v = i.fx * x[0] / x[2] + i.cx, i.fy * x[1] / x[2] + i.cy
+    return bool(0 <= u < i.width and 0 <= v < i.height)
+
+
+def _write_object(
+    conn: sqlite3.Connection,
+    segment: str,
+    object_id: str | None,
+    members: Sequence[_Region],
+    views: Sequence[_ViewGeom],
+    ground_class: GroundClass | None,
+) -> int:
+    """Insert one object (and its views); 0 when a reviewed object has no region left."""
+    if not members:
+        return 0
+    first = members[0]
+    if object_id is None:
+        key = f"{segment}|{first.night}|{first.view}|{first.label}"
+        object_id = "o-" + hashlib.sha1(key.encode()).hexdigest()[:12]
+    w = np.array([g.pixels for g in members], dtype=np.float64)
+    cents = np.array([g.centroid for g in members])
+    centroid = (cents * w[:, None]).sum(axis=0) / w.sum()
+    lo = np.min([g.lo for g in members], axis=0)
+    hi = np.max([g.hi for g in members], axis=0)
+    cls = _majority([g.cls for g in members], w)
+    kind, where = _kind(members, cls)
+    if kind == "added" and where is not None:
+        centroid = where
+        lo, hi = np.minimum(lo, where), np.maximum(hi, where)
+    seeing = {g.view for g in members}
+    without = [v for v in views if v.key not in seeing and sees(v.view, centroid)]
+    nights = sorted({g.night for g in members})
+    n_see, n_without = len(seeing), len(without)
+    # Views of a night before the change was first seen do not disagree: it was not there.
+    against = [v for v in without if v.night in set(nights)]
+    confidence = (n_see / (n_see + len(against))) * (1.0 - 0.5**n_see)
+    foot = _majority([g.foot for g in members], w)
+    transient = _transient(cls, members, without)
+    if transient is None and kind != "removed" and foot in ROAD_CLASSES:
+        transient = (
+            "stands on the road (the old cloud's class at its foot): a vehicle or a passer-by"
+        )
+    if transient is None and not _large_enough(members):
+        transient = (
+            f"small: no view's region of it covers {MIN_REGION_FRACTION:.1%} of its image"
+            " (run.min_region_fraction)"
+        )
+    if transient is None and kind == "added" and ground_class is not None:
+        under = ground_class(float(centroid[0]), float(centroid[1]))
+        if under in ROAD_CLASSES:
+            transient = "stands on the road (the old cloud's class there): a vehicle or a passer-by"
+    cur = conn.execute(
+        "INSERT INTO objects (object_id, segment_id, kind, class, confidence, x, y, z, min_x,"
+        " min_y, min_z, max_x, max_y, max_z, pixels, n_views, n_without, first_seen, last_seen,"
+        " transient) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+        (
+            object_id,
+            segment,
+            kind,
+            cls,
+            round(float(confidence), 6),
+            *(float(c) for c in centroid),
+            *(float(c) for c in lo),
+            *(float(c) for c in hi),
+            int(w.sum()),
+            n_see,
+            n_without,
+            nights[0],
+            nights[-1],
+            transient,
+        ),
+    )
+    conn.execute(
+        "INSERT INTO objects_rtree VALUES (?, ?, ?, ?, ?)",
+        (cur.lastrowid, float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
+    )
+    labels: dict[str, list[int]] = {}
+    for g in members:
+        labels.setdefault(g.view, []).append(g.label)
+    for view, labs in sorted(labels.items()):
+        conn.execute(
+            "INSERT INTO object_views VALUES (?, ?, 1, ?)", (object_id, view, json.dumps(labs))
+        )
+    for v in without:
+        conn.execute("INSERT INTO object_views VALUES (?, ?, 0, '[]')", (object_id, v.key))
+    return 1
+
+
+def _large_enough(members: Sequence[_Region]) -> bool:
+    """Whether one region covers MIN_REGION_FRACTION of its view's image: the rule by which a
+    view is flagged at all (:func:`streetcd.run.worker.is_flagged`), held by each object."""
+    return any(g.image_px is None or g.pixels >= MIN_REGION_FRACTION * g.image_px for g in members)
+
+
+def _majority(values: Sequence[int], weights: np.ndarray) -> int:
+    """The value with the largest total weight (ties: the smallest value)."""
+    totals: dict[int, float] = {}
+    for v, wt in zip(values, weights, strict=True):
+        totals[v] = totals.get(v, 0.0) + float(wt)
+    return min(totals, key=lambda v: (-totals[v], v))
+
+
+def _kind(members: Sequence[_Region], cls: int) -> tuple[str, np.ndarray | None]:
+    """``removed`` where every view puts the change on the same spot of the old surface and
+    the old cloud has an object there (what was seen there is gone); ``added`` where the
+    views' lines of sight through their regions meet well in front of the old surface, at a
+    point every region covers (something new stands there; that place is returned); else
+    ``unknown``."""
+    with_cam = [g for g in members if g.camera is not None]
+    views = {g.view for g in with_cam}
+    if len(views) < 2:
+        return "unknown", None
+    if _on_one_spot(members):
+        # Every view located it on the same spot of the old surface: what changed is that
+        # surface itself (an object of the old cloud gone), not something before it.
+        if cls in (*OBJECT_CLASSES, *VEHICLE_CLASSES):
+            return "removed", None
+        return "unknown", None
+    origins = np.array([g.camera for g in with_cam])
+    targets = np.array([g.centroid for g in with_cam])
+    where, miss = nearest_to_rays(origins, targets)
+    if not math.isfinite(miss) or miss > MAX_RAY_MISS_M:
+        return "unknown", None
+    # How far before the old surface the lines of sight meet, along each.
+    depth_surface = np.linalg.norm(targets - origins, axis=1)
+    depth_change = np.linalg.norm(where[None] - origins, axis=1)
+    in_front = float(np.median(depth_surface - depth_change))
+    if in_front > IN_FRONT_M and all(
+        covers(where, cam, g.centroid, g.lo, g.hi, MERGE_MARGIN_M)
+        for g, cam in zip(with_cam, origins, strict=True)
+    ):
+        return "added", where
+    return "unknown", None
+
+
+def _on_one_spot(members: Sequence[_Region]) -> bool:
+    """Whether the regions of every two views overlap on the old surface (boxes grown by
+    the merge margin): no parallax between the views, so the change is on that surface."""
+    for a in members:
+        for b in members:
+            if a.view < b.view and not (
+                np.all(a.lo - MERGE_MARGIN_M <= b.hi + MERGE_MARGIN_M)
+                and np.all(b.lo - MERGE_MARGIN_M <= a.hi + MERGE_MARGIN_M)
+            ):
+                return False
+    return True
+
+
+def _transient(cls: int, members: Sequence[_Region], without: Sequence[_ViewGeom]) -> str | None:
+    """Why the object is a transient and not a change of the street, or None.
+
+    The views are counted night by night for "one view only": the same camera position on
+    two nights is not a second line of sight."""
+    if cls in VEHICLE_CLASSES:
+        return f"the old cloud has a {C.NAMES[cls]} there: a vehicle came or went"
+    if cls in ROAD_CLASSES:
+        return "on the road surface: a vehicle or a pedestrian passing"
+    last = max(g.night for g in members)
+    later = sorted({v.night for v in without if v.night > last})
+    if later:
+        return f"gone on a later night ({later[0]}): came and went"
+    per_night: dict[str, set[str]] = {}
+    for g in members:
+        per_night.setdefault(g.night, set()).add(g.view)
+    without = [v for v in without if v.night in per_night]  # the nights it was seen on
+    n_see = len({g.view for g in members})
+    if max(len(v) for v in per_night.values()) == 1 and without:
+        return f"seen by one view only; {len(without)} view(s) see the spot without a change"
+    if len(without) > n_see:
+        return (
+            f"views disagree: {len(without)} of {n_see + len(without)} views that see the spot"
+            " see no change there"
+        )
+    return None
+
+
+# --- reading ------------------------------------------------------------------------------
+
+
+def _connect_ro(index_path: str | Path) -> ChangeIndex:
+    return ChangeIndex(index_path, readonly=True)
+
+
+def list_objects(
+    index_path: str | Path,
+    *,
+    status: str | None = None,
+    segment: str | None = None,
+    kind: str | None = None,
+    bbox: Sequence[float] | None = None,
+    limit: int | None = None,
+    sort: str = "confidence",
+    since: str | None = None,
+    min_confidence: float | None = None,
+) -> list[dict]:
+    """The change objects of an index, as plain dicts (see ``docs/DECISIONS.md``, issue 17).
+
+    status : ``awaiting`` (not reviewed, not transient), ``transient``, or a review status
+        (``confirmed``, ``false_alarm``, ``fixed``); None: all. segment : a segment id.
+    kind : ``added``, ``removed``, ``unknown``. bbox : (min_x, min_y, max_x, max_y) in the
+        index's CRS, objects whose x/y box meets it. limit : at most this many (≥ 0).
+    sort : ``confidence`` (highest first, then id) or ``id``.
+    since : ISO date: objects last seen on or after that night.
+    min_confidence : confidence ≥ this (a finite number in [0, 1]).
+    Opens the index read-only (never creates or writes a file).
+    """
+    where, args = _filters(status, segment, kind, bbox)
+    if since is not None:
+        where.append("o.last_seen >= ?")
+        args.append(parse_since(since)[:10])
+    if min_confidence is not None:
+        where.append("o.confidence >= ?")
+        args.append(check_fraction("min_confidence", min_confidence))
+    if sort not in ("confidence", "id"):
+        raise InputError(f"sort {sort!r} must be 'confidence' or 'id'")
+    order = "o.confidence DESC, o.object_id" if sort == "confidence" else "o.object_id"
+    sql = (
+        "SELECT o.*, r.status AS r_status, r.who AS r_who, r.at AS r_at, r.note AS r_note"
+        " FROM objects o LEFT JOIN reviews r ON r.object_id = o.object_id"
+        + (" WHERE " + " AND ".join(where) if where else "")
+        + f" ORDER BY {order}"
+    )
+    if limit is not None:
+        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 0:
+            raise InputError(f"limit {limit!r} must be a whole number >= 0")
+        sql += f" LIMIT {int(limit)}"
+    with _connect_ro(index_path) as idx:
+        rows = idx.conn.execute(sql, args).fetchall()
+        return [_as_dict(idx.conn, r) for r in rows]
+
+
+def _filters(
+    status: str | None, segment: str | None, kind: str | None, bbox: Sequence[float] | None
+) -> tuple[list[str], list[Any]]:
+    where: list[str] = []
+    args: list[Any] = []
+    if status is not None:
+        status = normalise_status(status, LIST_STATUSES)
+        if status == "awaiting":
+            where.append("r.status IS NULL AND o.transient IS NULL")
+        elif status == "transient":
+            where.append("o.transient IS NOT NULL")
+        else:
+            where.append("r.status = ?")
+            args.append(status)
+    if segment is not None:
+        where.append("o.segment_id = ?")
+        args.append(segment)
+    if kind is not None:
+        if kind not in KINDS:
+            raise InputError(f"kind {kind!r} must be one of {', '.join(KINDS)}")
+        where.append("o.kind = ?")
+        args.append(kind)
+    if bbox is not None:
+        mnx, mny, mxx, mxy = _check_bbox(bbox)
+        where.append(
+            "o.id IN (SELECT id FROM objects_rtree WHERE max_x >= ? AND min_x <= ?"
+            " AND max_y >= ? AND min_y <= ?)"
+        )
+        args += [mnx, mxx, mny, mxy]
+    return where, args
+
+
+def _as_dict(conn: sqlite3.Connection, r: sqlite3.Row) -> dict:
+    views = [
+        {
+            "view": v["view"],
+            "image": v["image"],
+            "overlay": v["overlay_path"],
+            "mask": v["mask_path"],
+            "image_path": v["image_path"],
+            "sees_change": bool(v["sees_change"]),
+            "labels": json.loads(v["labels"]),
+            "score": v["score"],
+        }
+        for v in conn.execute(
+            "SELECT ov.view, ov.sees_change, ov.labels, w.image, w.image_path, f.overlay_path,"
+            " f.mask_path, f.score FROM object_views ov LEFT JOIN views w ON w.view = ov.view"
+            " LEFT JOIN flagged f ON f.view = ov.view AND ov.sees_change = 1"
+            " WHERE ov.object_id = ? ORDER BY ov.sees_change DESC, ov.view",
+            (r["object_id"],),
+        )
+    ]
+    review = None
+    if r["r_status"] is not None:
+        review = {"status": r["r_status"], "who": r["r_who"], "at": r["r_at"], "note": r["r_note"]}
+    return {
+        "id": r["object_id"],
+        "kind": r["kind"],
+        "class": r["class"],
+        "class_name": C.NAMES.get(r["class"], "unknown"),
+        "confidence": r["confidence"],
+        "centroid": [r["x"], r["y"], r["z"]],
+        "bbox": [r["min_x"], r["min_y"], r["min_z"], r["max_x"], r["max_y"], r["max_z"]],
+        "segment": r["segment_id"],
+        "pixels": r["pixels"],
+        "n_views": r["n_views"],
+        "n_without": r["n_without"],
+        "views": views,
+        "first_seen": r["first_seen"],
+        "last_seen": r["last_seen"],
+        "review": review,
+        "transient": r["transient"],
+    }
+
+
+def check_fraction(name: str, value: object) -> float:
+    """``value`` as a float in [0, 1]; InputError naming ``name`` for NaN, inf, junk."""
+    try:
+        x = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"{name} {value!r} is not a number") from None
+    if not (math.isfinite(x) and 0.0 <= x <= 1.0):
+        raise InputError(f"{name} {value!r} must be a finite number in [0, 1]")
+    return x
+
+
+# --- reviewing ----------------------------------------------------------------------------
+
+
+def normalise_status(status: str, allowed: Sequence[str] = REVIEW_STATUSES) -> str:
+    """``status`` with ``-`` read as ``_`` (``false-alarm``); InputError if not allowed."""
+    s = str(status).strip().lower().replace("-", "_")
+    if s not in allowed:
+        raise InputError(f"status {status!r} must be one of {', '.join(allowed)}")
+    return s
+
+
+def record_review(
+    index_path: str | Path,
+    object_id: str,
+    status: str,
+    *,
+    who: str,
+    note: str | None = None,
+) -> dict:
+    """Store an operator's decision on a change object: ``confirmed``, ``false_alarm``
+    (``false-alarm`` too) or ``fixed``, who made it, when (now, UTC) and a note. A second
+    review replaces the first. The object's box at the review is kept with it: later
+    nights' regions inside it join the object instead of raising a new one (see the module
+    docstring). Returns the review as stored. InputError for a bad status,
+    MissingInputError for an unknown object id or index."""
+    status = normalise_status(status)
+    if not str(who).strip():
+        raise InputError("who must name the reviewer")
+    with ChangeIndex(index_path, create=False) as idx:
+        row = idx.conn.execute("SELECT * FROM objects WHERE object_id = ?", (object_id,)).fetchone()
+        if row is None:
+            raise MissingInputError(f"{index_path}: no change object {object_id!r}")
+        review = {"status": status, "who": str(who), "at": utc_now(), "note": note}
+        with idx.transaction():
+            idx.conn.execute(
+                "INSERT OR REPLACE INTO reviews VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                (
+                    object_id,
+                    row["segment_id"],
+                    status,
+                    review["who"],
+                    review["at"],
+                    note,
+                    *(row[k] for k in ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z")),
+                ),
+            )
+    return review

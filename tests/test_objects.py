@@ -1,0 +1,321 @@
+"""Change objects: per-view regions merged in 3D across views and nights, kinds, transients,
+reviews that later nights respect, and the read-only listing (docs/DECISIONS.md contract).
+
+The street: cameras every 3 m along x, looking sideways (+y) at a façade 12 m away. The
+regions are made as the detector locates them, on the old surface behind their pixels: a
+removed pole's regions lie on the pole; an added box's regions lie on the façade, where each
+view's line of sight through the box meets it.
+"""
+
+import json
+import os
+import sqlite3
+import stat
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from test_segments import E0, N0, street
+
+from streetcd import classes as C
+from streetcd.cli.query import query as query_cmd
+from streetcd.cli.review import review as review_cmd
+from streetcd.errors import InputError, MissingInputError
+from streetcd.geometry.merge import link_regions, nearest_to_rays
+from streetcd.run.segments import SegmentParams, plan_segments
+from streetcd.store.index import ChangeIndex
+from streetcd.store.objects import list_objects, rebuild_objects, record_review, sees
+from streetcd.store.records import RegionRecord, ViewRecord, camera_json
+
+FACADE_Y = N0 + 1.0 + 12.0
+POLE = np.array([E0 + 16.0, N0 + 1.0 + 8.0, 102.0])  # an old pole, gone
+BOX = np.array([E0 + 25.0, N0 + 1.0 + 5.0, 102.3])  # a new box, 5 m from the cameras
+BIN = np.array([E0 + 34.0, N0 + 1.0 + 6.0, 102.0])  # another new object, on night 2 only
+PARAMS = SegmentParams(length_m=100.0)
+
+
+def _on_facade(camera, point):
+    """Where the line of sight from ``camera`` through ``point`` meets the façade."""
+    t = (FACADE_Y - camera[1]) / (point[1] - camera[1])
+    return camera + t * (point - camera)
+
+
+def _region(label, centroid, half, cls, rng):
+    c = np.asarray(centroid) + rng.normal(0, 0.03, 3)
+    return RegionRecord(label, 4000, 0.8, tuple(c), tuple(c - half), tuple(c + half), cls)
+
+
+def night(index, suffix, changes, day, skip=(), run="r", ground=None):
+    """Publish one night of the street: each view that sees a change gets a region for it
+    (except the views in ``skip``); view keys carry ``suffix`` as their content hash."""
+    rng = np.random.default_rng(len(suffix) + len(changes))
+    views = street(16, step_m=3.0)
+    segments = plan_segments(views, PARAMS)
+    seg = {n: s.id for s in segments for n in s.views}
+    records = []
+    for v in views:
+        regions = []
+        for kind, point in changes:
+            if v.name in skip or not sees(v, point):
+                continue
+            if kind == "removed":
+                g = _region(len(regions) + 1, point, np.array([0.15, 0.15, 1.0]), C.POLE, rng)
+            else:
+                hit = _on_facade(v.center, point)
+                g = _region(len(regions) + 1, hit, np.array([0.7, 0.05, 0.7]), C.BUILDING, rng)
+            regions.append(g)
+        records.append(
+            ViewRecord(
+                f"{v.name}#{suffix}",
+                "h",
+                "p",
+                seg[v.name],
+                "done",
+                flagged=bool(regions),
+                score=0.8 if regions else 0.0,
+                regions=tuple(regions),
+                mask_path=f"/out/masks/{v.stem}-{suffix}.png" if regions else None,
+                overlay_path=f"/out/overlays/{v.stem}-{suffix}.jpg" if regions else None,
+                center=tuple(float(x) for x in v.center),
+                captured_at=f"{day}T02:00:00Z",
+                image=v.name,
+                camera=camera_json(v),
+            )
+        )
+    with ChangeIndex(index) as idx:
+        idx.add_segments(segments)
+        idx.publish(run, records)
+        rebuild_objects(idx, [s.id for s in segments], ground)
+    return [s.id for s in segments]
+
+
+def seers(point):
+    return [v.name for v in street(16, step_m=3.0) if sees(v, point)]
+
+
+@pytest.fixture
+def one_night(tmp_path):
+    index = tmp_path / "change_index.sqlite"
+    night(index, "aaa", [("removed", POLE), ("added", BOX)], "2026-11-01")
+    return index
+
+
+def test_one_object_per_physical_change_with_its_views(one_night):
+    objects = list_objects(one_night, sort="id")
+    assert len(objects) == 2
+    by_kind = {o["kind"]: o for o in objects}
+    assert set(by_kind) == {"removed", "added"}
+    pole, box = by_kind["removed"], by_kind["added"]
+    assert len(seers(POLE)) >= 3 and len(seers(BOX)) >= 3
+    for o, point in ((pole, POLE), (box, BOX)):
+        assert sorted(v["image"] for v in o["views"]) == sorted(seers(point))
+        assert all(v["sees_change"] and v["overlay"].endswith("-aaa.jpg") for v in o["views"])
+        assert o["first_seen"] == o["last_seen"] == "2026-11-01"
+        assert o["review"] is None and o["transient"] is None
+        lo, hi = np.array(o["bbox"][:3]), np.array(o["bbox"][3:])
+        assert np.all(lo <= o["centroid"]) and np.all(np.array(o["centroid"]) <= hi)
+    assert pole["class"] == C.POLE
+    np.testing.assert_allclose(pole["centroid"], POLE, atol=0.1)
+    # The added box is where the lines of sight meet, not on the façade behind it.
+    np.testing.assert_allclose(box["centroid"], BOX, atol=0.3)
+    assert box["confidence"] == pytest.approx(1 - 0.5 ** len(seers(BOX)), abs=1e-6)
+
+
+def test_views_that_see_the_spot_without_a_change_lower_the_confidence(tmp_path):
+    index = tmp_path / "i.sqlite"
+    missing = seers(POLE)[1:3]
+    night(index, "aaa", [("removed", POLE)], "2026-11-01", skip=missing)
+    (pole,) = list_objects(index)
+    without = sorted(v["image"] for v in pole["views"] if not v["sees_change"])
+    assert without == sorted(missing)
+    n = len(seers(POLE)) - 2
+    assert pole["confidence"] == pytest.approx(n / (n + 2) * (1 - 0.5**n), abs=1e-6)
+
+
+def test_a_change_seen_by_one_view_only_is_a_transient_with_its_reason(tmp_path):
+    index = tmp_path / "i.sqlite"
+    night(index, "aaa", [("added", BOX)], "2026-11-01", skip=seers(BOX)[1:])
+    (o,) = list_objects(index)
+    assert "seen by one view only" in o["transient"]
+    assert list_objects(index, status="awaiting") == []
+    assert [x["id"] for x in list_objects(index, status="transient")] == [o["id"]]
+
+
+def test_two_nights_with_reused_names_are_both_kept_and_merge_into_the_same_objects(one_night):
+    first = {o["kind"]: o["id"] for o in list_objects(one_night)}
+    night(one_night, "bbb", [("removed", POLE), ("added", BOX)], "2026-11-02", run="r2")
+    with ChangeIndex(one_night, readonly=True) as idx:
+        keys = [r[0] for r in idx.conn.execute("SELECT view FROM views")]
+    assert len(keys) == 32 and len({k.split("#")[0] for k in keys}) == 16
+    objects = list_objects(one_night)
+    assert {o["kind"]: o["id"] for o in objects} == first  # ids last from night to night
+    for o in objects:
+        assert (o["first_seen"], o["last_seen"]) == ("2026-11-01", "2026-11-02")
+        suffixes = {v["view"].split("#")[1] for v in o["views"]}
+        assert suffixes == {"aaa", "bbb"}
+
+
+def test_a_change_gone_on_a_later_night_came_and_went(one_night):
+    night(one_night, "bbb", [("removed", POLE)], "2026-11-02", run="r2")
+    box = next(o for o in list_objects(one_night) if o["kind"] == "added")
+    assert box["transient"].startswith("gone on a later night (2026-11-02)")
+
+
+def test_a_dismissed_change_is_not_flagged_again_but_a_new_one_is(one_night):
+    box = next(o for o in list_objects(one_night) if o["kind"] == "added")
+    out = CliRunner().invoke(
+        review_cmd,
+        [box["id"], "--index", str(one_night), "--status", "false-alarm", "--note", "a skip"],
+    )
+    assert out.exit_code == 0, out.output
+    awaiting = [o["id"] for o in list_objects(one_night, status="awaiting")]
+    assert box["id"] not in awaiting and len(awaiting) == 1
+    # Next night: the street is unchanged at the box (the detector flags it again against
+    # the old cloud), and a new object has appeared further along.
+    night(one_night, "bbb", [("removed", POLE), ("added", BOX), ("added", BIN)], "2026-11-02")
+    objects = {o["id"]: o for o in list_objects(one_night)}
+    kept = objects[box["id"]]
+    assert kept["review"]["status"] == "false_alarm" and kept["review"]["note"] == "a skip"
+    assert kept["last_seen"] == "2026-11-02"
+    awaiting = list_objects(one_night, status="awaiting")
+    assert box["id"] not in [o["id"] for o in awaiting]
+    (bin_,) = [o for o in awaiting if o["first_seen"] == "2026-11-02"]
+    np.testing.assert_allclose(bin_["centroid"], BIN, atol=0.3)
+
+
+def test_a_fixed_change_seen_again_is_a_new_change(one_night):
+    pole = next(o for o in list_objects(one_night) if o["kind"] == "removed")
+    record_review(one_night, pole["id"], "fixed", who="ana")
+    assert list_objects(one_night, status="fixed")[0]["review"]["who"] == "ana"
+    night(one_night, "bbb", [("removed", POLE)], "2099-01-01", run="r2")
+    again = [o for o in list_objects(one_night, status="awaiting") if o["kind"] == "removed"]
+    assert len(again) == 1 and again[0]["id"] != pole["id"]
+    assert again[0]["first_seen"] == "2099-01-01"
+
+
+def test_reviews_refuse_bad_statuses_and_unknown_objects(one_night):
+    oid = list_objects(one_night)[0]["id"]
+    with pytest.raises(InputError, match="status 'maybe'"):
+        record_review(one_night, oid, "maybe", who="x")
+    with pytest.raises(MissingInputError, match="o-nothere"):
+        record_review(one_night, "o-nothere", "confirmed", who="x")
+    out = CliRunner().invoke(
+        review_cmd, ["o-nothere", "--index", str(one_night), "--status", "fixed"]
+    )
+    assert out.exit_code == 1 and "o-nothere" in out.output
+
+
+def test_listing_filters_and_opens_read_only(one_night):
+    before = one_night.read_bytes()
+    all_ = list_objects(one_night)
+    assert [o["confidence"] for o in all_] == sorted((o["confidence"] for o in all_), reverse=True)
+    assert [o["kind"] for o in list_objects(one_night, kind="added")] == ["added"]
+    x, y = POLE[:2]
+    assert [o["kind"] for o in list_objects(one_night, bbox=(x - 1, y - 1, x + 1, y + 1))] == [
+        "removed"
+    ]
+    assert len(list_objects(one_night, limit=1)) == 1
+    assert list_objects(one_night, segment="nope") == []
+    with pytest.raises(InputError, match="kind"):
+        list_objects(one_night, kind="moved")
+    with pytest.raises(InputError, match="limit"):
+        list_objects(one_night, limit=-1)
+    os.chmod(one_night, stat.S_IRUSR)
+    try:
+        assert len(list_objects(one_night)) == 2
+    finally:
+        os.chmod(one_night, stat.S_IRUSR | stat.S_IWUSR)
+    assert one_night.read_bytes() == before
+
+
+def test_rebuilding_is_deterministic(one_night):
+    def dump():
+        con = sqlite3.connect(one_night)
+        rows = con.execute("SELECT * FROM objects ORDER BY object_id").fetchall()
+        views = con.execute("SELECT * FROM object_views ORDER BY object_id, view").fetchall()
+        con.close()
+        return [r[1:] for r in rows], views
+
+    before = dump()
+    with ChangeIndex(one_night) as idx:
+        rebuild_objects(idx, [s.segment_id for s in idx.segments()])
+    assert dump() == before
+
+
+def test_the_kernels_link_what_meets_and_only_that():
+    # Two boxes that touch, one far away.
+    c = np.array([[0, 0, 0], [0.9, 0, 0], [10, 0, 0]], dtype=float)
+    labels = link_regions(c, c - 0.3, c + 0.3, margin_m=0.2)
+    assert labels.tolist() == [0, 0, 1]
+    # Rays from two cameras through a common point meet there.
+    origins = np.array([[0, 0, 0], [4, 0, 0], [8, 0, 0]], dtype=float)
+    p = np.array([3.0, 5.0, 1.0])
+    x, miss = nearest_to_rays(origins, origins + 2.5 * (p - origins))
+    np.testing.assert_allclose(x, p, atol=1e-9)
+    assert miss < 1e-9
+    _, miss = nearest_to_rays(origins[:2], origins[:2] + np.array([0, 1.0, 0]))
+    assert miss == float("inf")  # parallel lines of sight say nothing of depth
+
+
+def test_query_lists_objects_views_and_geojson(one_night):
+    run = CliRunner().invoke
+    args = ["--index", str(one_night), "--format"]
+    data = json.loads(run(query_cmd, [*args, "json"]).output)
+    assert sorted(o["kind"] for o in data["objects"]) == ["added", "removed"]
+    for key in ("id", "kind", "confidence", "centroid", "bbox", "views", "first_seen", "review"):
+        assert all(key in o for o in data["objects"])
+    views = json.loads(run(query_cmd, [*args, "json", "--views"]).output)["views"]
+    flagged = {v for o in data["objects"] for v in (w["view"] for w in o["views"])}
+    assert {v["id"] for v in views} == flagged
+    assert all(v["id"] == f"{v['image']}#aaa" and v["segment"] and v["score"] for v in views)
+    gj = json.loads(run(query_cmd, [*args, "geojson", "--native-crs"]).output)
+    assert len(gj["features"]) == 2
+    for f in gj["features"]:
+        assert f["geometry"]["type"] == "Polygon"
+        assert f["properties"]["overlays"] and all(
+            p.endswith("-aaa.jpg") for p in f["properties"]["overlays"]
+        )
+    oid = data["objects"][0]["id"]
+    assert run(review_cmd, [oid, "--index", str(one_night), "--status", "confirmed"]).exit_code == 0
+    left = json.loads(run(query_cmd, [*args, "json", "--awaiting-review"]).output)
+    assert [o["id"] for o in left["objects"]] == [data["objects"][1]["id"]]
+
+
+def test_an_added_object_standing_on_the_road_is_a_transient(tmp_path):
+    index = tmp_path / "i.sqlite"
+    asked = []
+
+    def road_under_the_box(x, y):
+        asked.append((x, y))
+        return C.ROAD if abs(x - BOX[0]) < 1 and abs(y - BOX[1]) < 1 else C.GROUND
+
+    night(
+        index, "aaa", [("removed", POLE), ("added", BOX)], "2026-11-01", ground=road_under_the_box
+    )
+    by_kind = {o["kind"]: o for o in list_objects(index)}
+    assert by_kind["added"]["transient"].startswith("stands on the road")
+    assert by_kind["removed"]["transient"] is None
+    assert len(asked) == 1  # only an added object is looked under, where it stands
+    np.testing.assert_allclose(asked[0], BOX[:2], atol=0.3)
+
+
+def test_a_regions_foot_is_the_old_class_just_below_it():
+    from streetcd.detect.regions import changed_regions
+    from streetcd.types import Intrinsics, Pose
+
+    h, w = 100, 80
+    mask = np.zeros((h, w), bool)
+    mask[20:60, 30:50] = True  # a car's cabin, flagged against the wall behind
+    classes = np.full((h, w), C.BUILDING, np.uint8)
+    classes[60:, :] = C.ROAD  # its body hides the road: the rows just below are road
+    depth = np.full((h, w), 10.0, np.float32)
+    intr = Intrinsics(w, h, 80.0, 80.0, w / 2, h / 2)
+    _, (g,) = changed_regions(
+        mask, mask.astype(np.float32), depth, classes, intr, Pose(np.eye(3), np.zeros(3))
+    )
+    assert g.dominant_class == C.BUILDING and g.foot_class == C.ROAD
+    classes[60:, :] = 0  # no old surface below it: unknown
+    _, (g,) = changed_regions(
+        mask, mask.astype(np.float32), depth, classes, intr, Pose(np.eye(3), np.zeros(3))
+    )
+    assert g.foot_class == 0
