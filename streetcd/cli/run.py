@@ -10,12 +10,19 @@ summary come from here.
 Prefect or Dask start, and exits with a code a cron job can act on (README, "Exit codes"):
 0 a good night, 2 a whole-input error (one line on stderr naming the file and field), 3 more
 views failed than ``--max-failed`` allows. Its summary JSON goes to ``OUT/runs/``.
+
+After the check, the night runs in a child process that cannot outlive the command
+(:mod:`streetcd.run.supervise`): however ``streetcd run`` is killed (SIGKILL, SIGTERM,
+Ctrl-C), Prefect's temporary server and the Dask LocalCluster go with it. The child is
+``python -m streetcd.cli.run SPEC`` (:func:`child_main`); its output, lines and exit code
+are the command's.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -243,29 +250,69 @@ def run(
     """Run the nightly flow once: check the inputs, ingest, plan segments, detect on Dask,
     publish. Exit codes: 0 a good night, 2 a whole-input error (nothing ran), 3 more views
     failed than --max-failed allows (summary: OUT/runs/latest.json)."""
+    from streetcd.run import supervise
+
     index = _default(index, out, "change_index.sqlite")
     limit = None if max_failed is None else parse_max_failed(max_failed)
     try:
         check_first(images, poses, store, index, archive, config_file)
-        summary = run_flow(
-            images=images,
-            poses=poses,
-            store=store,
-            index=index,
-            out=out,
-            archive=archive,
-            scheduler=scheduler,
-            workers=workers,
-            config_file=config_file,
-            batch_size=batch_size,
-            retry_failed=retry_failed,
-            max_failed=limit,
-            verbose=verbose,
-        )
     except StreetcdError as exc:
         raise input_error(exc, out) from None
-    print_summary(summary, index)
-    raise click.exceptions.Exit(summary["exit_code"])
+    spec = {
+        "images": images,
+        "poses": poses,
+        "store": store,
+        "index": index,
+        "out": out,
+        "archive": archive,
+        "scheduler": scheduler,
+        "workers": workers,
+        "config_file": config_file,
+        "batch_size": batch_size,
+        "retry_failed": retry_failed,
+        "max_failed": limit,
+        "verbose": verbose,
+    }
+    if not supervise.supported():  # Windows: no process groups; the night runs in here
+        raise click.exceptions.Exit(night(spec))
+    cmd = [sys.executable, "-m", "streetcd.cli.run", json.dumps(spec)]
+    raise click.exceptions.Exit(supervise.run_supervised(cmd, child_environment()))
+
+
+def night(spec: dict[str, Any]) -> int:
+    """The night after the check: :func:`run_flow` on ``spec`` (its keyword arguments) and
+    the summary; returns the exit code (2 with its one line for a whole-input error)."""
+    try:
+        summary = run_flow(**spec)
+    except StreetcdError as exc:
+        return input_error(exc, spec["out"]).exit_code
+    print_summary(summary, spec["index"])
+    return int(summary["exit_code"])
+
+
+def child_environment() -> dict[str, str]:
+    """The environment of the supervised night: ours, plus the Prefect settings in force
+    here where prefect is already loaded (a test's temporary server is a setting, not an
+    environment variable; the command itself never loads prefect)."""
+    env = dict(os.environ)
+    if "prefect" in sys.modules:
+        from streetcd_flows.environment import prefect_environment
+
+        env.update(prefect_environment())
+    return env
+
+
+def child_main(spec_json: str) -> int:
+    """``python -m streetcd.cli.run SPEC``: the supervised night of ``streetcd run``; SPEC
+    is :func:`night`'s argument as JSON. Returns the exit code."""
+    from streetcd.run.supervise import watch_supervisor
+
+    watch_supervisor()  # first: from here on, this process's group dies with the command
+    try:
+        return night(json.loads(spec_json))
+    except KeyboardInterrupt:  # Ctrl-C, forwarded by the supervisor
+        click.echo("Aborted!", err=True)
+        return 130
 
 
 @click.command("demo")
@@ -364,3 +411,7 @@ def _same_city(manifest: Path, seed: int, streets: int, images_per_street: int) 
         )
     except (OSError, ValueError, KeyError, TypeError):
         return False
+
+
+if __name__ == "__main__":
+    sys.exit(child_main(sys.argv[1]))
