@@ -29,16 +29,20 @@ def _table1(console: Any, overall: dict, baselines: dict) -> None:
             t.add_column(col, justify="right")
     rows = [("proposed", overall), *baselines.items()]
     for name, r in rows:
-        t.add_row(
-            name,
-            _num(r["gdr"]),
-            _num(r["fdr"]),
-            _num(r["tp"]),
-            _num(r["fp"]),
-            _num(r["kappa"], 3),
-            _num(r["flagged"], 2),
-        )
+        t.add_row(name, *_rates(r))
     console.print(t)
+
+
+def _rates(r: dict) -> tuple[str, ...]:
+    """The cells of Table 1's columns GDR, FDR, TP, FP, KC and flagged for one result row."""
+    return (
+        _num(r["gdr"]),
+        _num(r["fdr"]),
+        _num(r["tp"]),
+        _num(r["fp"]),
+        _num(r["kappa"], 3),
+        _num(r["flagged"], 2),
+    )
 
 
 def _table2(console: Any, per_type: dict) -> None:
@@ -277,14 +281,7 @@ def _case_tables(console: Any, data: dict, name: str) -> None:
     t = Table(title=f"{name} — change detection results (pooled over {data['n_views']} views)")
     for col in ("GDR (%)", "FDR (%)", "TP (%)", "FP (%)", "KC", "flagged (%)"):
         t.add_column(col, justify="right")
-    t.add_row(
-        _num(o["gdr"]),
-        _num(o["fdr"]),
-        _num(o["tp"]),
-        _num(o["fp"]),
-        _num(o["kappa"], 3),
-        _num(o["flagged"], 2),
-    )
+    t.add_row(*_rates(o))
     console.print(t)
     if data["labelled"] and not data["objects"]:
         console.print("No labelled objects (gt/*.labels.png hold no label).")
