@@ -56,6 +56,11 @@ class ZBufferParams:
     # synthetic streets); > 0 widens w1 around near points to their projected spacing f·s/z
     # (see streetcd.detect.zbuffer); 0 keeps the paper's fixed w1
     point_spacing_m: float = 0.12
+    # our addition (issue 16): > 0 takes s per point as max(point_spacing_m, this × the
+    # cloud's measured spacing of its class, streetcd.detect.spacing), so a sparse cloud's
+    # near surfaces still hide what lies behind them; 0 = point_spacing_m alone. 4: a dense
+    # MLS cloud (≤ 0.03 m) stays at 0.12 m, a sparse one widens (docs/DECISIONS.md)
+    spacing_factor: float = 4.0
 
     def __post_init__(self) -> None:
         _check(self.block_window_px >= 1, "block_window_px", self.block_window_px, ">= 1")
@@ -70,6 +75,12 @@ class ZBufferParams:
             self.point_spacing_m,
             ">= 0",
         )
+        _check(
+            math.isfinite(self.spacing_factor) and self.spacing_factor >= 0,
+            "spacing_factor",
+            self.spacing_factor,
+            ">= 0",
+        )
 
 
 @dataclass(frozen=True)
@@ -78,10 +89,23 @@ class SurfaceParams:
 
     max_depth_jump_m: float = 0.5  # triangles spanning more depth than this are dropped
     max_edge_px: float = 30.0  # at REFERENCE_WIDTH_PX; scaled with the image width
+    # our addition (issue 16): > 0 lets a triangle's edges reach this many projected point
+    # spacings f·s/z (s: the cloud's measured spacing of a vertex's class,
+    # streetcd.detect.spacing) where that exceeds max_edge_px: sparse clouds keep a surface.
+    # Off: it gives the real case's near road a surface that the car's own bonnet hides from
+    # the neighbours (docs/DECISIONS.md); 8 for sparse clouds without that
+    spacing_edge_factor: float = 0.0
+    # our addition (issue 16): > 0 lets a triangle span this many s in depth where that
+    # exceeds max_depth_jump_m (s of its densest vertex); 0 = the fixed jump alone. 10: a
+    # dense MLS cloud (≤ 0.03 m) stays at 0.5 m
+    spacing_jump_factor: float = 10.0
 
     def __post_init__(self) -> None:
         _check(self.max_depth_jump_m > 0, "max_depth_jump_m", self.max_depth_jump_m, "> 0")
         _check(self.max_edge_px > 0, "max_edge_px", self.max_edge_px, "> 0")
+        for name in ("spacing_edge_factor", "spacing_jump_factor"):
+            value = getattr(self, name)
+            _check(math.isfinite(value) and value >= 0, name, value, ">= 0")
 
 
 @dataclass(frozen=True)
@@ -192,9 +216,31 @@ class AppearanceParams:
     chroma_weight: float = 2.0  # w_c, weight of the L1 chromaticity difference (0–2)
     brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
     brightness_tolerance: float = 0.5  # ... beyond this (ln units: shadows, exposure)
+    # our addition (issue 16): a cloud without colours but with intensity gets the intensity
+    # check instead (streetcd.detect.intensity: does the inventory still stand out in the
+    # image from its surroundings?); False: no check without colours
+    intensity: bool = True
+    intensity_same_rgb: float = 10.0  # RGB distance to the surroundings' colour: "the same" ...
+    intensity_differ_rgb: float = 30.0  # ... up to here, "different" beyond (0-441)
+    # the scan must have seen the object differ from its surroundings by this much (mean
+    # |ln intensity ratio|) for the check to count in full; 0: no such condition
+    intensity_contrast: float = 0.3
+    # px at REFERENCE_WIDTH_PX kept clear around the object, beyond the registration
+    # tolerance, when taking the surroundings' colour (the object must not be its own)
+    intensity_margin_px: float = 12.0
 
     def __post_init__(self) -> None:
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
+        _check(
+            0 <= self.intensity_same_rgb < self.intensity_differ_rgb,
+            "intensity_same_rgb",
+            self.intensity_same_rgb,
+            ">= 0 and < intensity_differ_rgb",
+        )
+        _check(self.intensity_contrast >= 0, "intensity_contrast", self.intensity_contrast, ">= 0")
+        _check(
+            self.intensity_margin_px >= 0, "intensity_margin_px", self.intensity_margin_px, ">= 0"
+        )
         _check(self.gap_px >= 0, "gap_px", self.gap_px, ">= 0")
         _check(0 <= self.hole_reach <= 1, "hole_reach", self.hole_reach, "in [0, 1]")
         _check(self.dark_level > 0, "dark_level", self.dark_level, "> 0")
@@ -241,6 +287,10 @@ class TextureParams:
     # registration error tolerated (px at REFERENCE_WIDTH_PX): the best NCC over shifts of the
     # warped neighbour up to this much (twice eq. 5's envelope: a window's texture needs it)
     registration_tolerance_px: float = 8.0
+    # our addition: the whole warped neighbour is first aligned by the shift (up to this, px at
+    # REFERENCE_WIDTH_PX) that correlates best with the view, then the windows search around it:
+    # pose error beyond the window's tolerance is mostly one shift per view (0: no alignment)
+    max_global_shift_px: float = 32.0
     # where the old surface is of these classes (empty: every class); the street inventory
     # by default, the objects a city's database tracks (on façades and trees the texture of a
     # window does not survive the registration error of synthetic streets: docs/TUNING.md)
@@ -263,6 +313,15 @@ class TextureParams:
             self.registration_tolerance_px,
             ">= 0",
         )
+        _check(
+            self.max_global_shift_px >= 0,
+            "texture.max_global_shift_px",
+            self.max_global_shift_px,
+            ">= 0",
+        )
+
+
+INFER_MODES = ("auto", "always", "off")  # ClassMap.infer
 
 
 @dataclass(frozen=True)
@@ -283,8 +342,15 @@ class ClassMap:
     railing: tuple[int, ...] = (classes.RAILING,)
     furniture: tuple[int, ...] = (classes.FURNITURE,)
     vehicle: tuple[int, ...] = (classes.CAR,)
+    # our addition: roles from the geometry (streetcd.detect.infer_roles) for the points in no
+    # role: "auto" when under 1 % of the cloud has a useful role (an unclassified cloud loses
+    # the ground's low weight and the inventory cues), "always" whatever the share, "off" never
+    infer: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.infer is False:  # YAML 1.1 reads an unquoted off as false
+            object.__setattr__(self, "infer", "off")
+        _check(self.infer in INFER_MODES, "classes.infer", self.infer, f"one of {INFER_MODES}")
         owner: dict[int, str] = {}
         for role in classes.ROLES:
             for code in getattr(self, role):
@@ -370,6 +436,9 @@ class RunParams:
     min_region_fraction : ... and when its largest changed region covers at least this share
         of the image (0.2 %: about 4,100 px at 2 MP). Single-view artefacts are small
         scattered regions (docs/TUNING.md, "Which views are flagged").
+    region_score_power : a region's size in that rule is its pixels × its score (mean node
+        energy, in [0, 1]) to this power: 0 counts pixels alone; 1 lets a small, sure region
+        count as much as a larger, doubtful one (ours; docs/DECISIONS.md).
     write_overlays : also write a JPEG of each flagged image with its changes drawn.
     batch_size : views per Dask task. workers : processes of the local Dask cluster (when no
         scheduler is given). Both change speed only, never results.
@@ -383,6 +452,9 @@ class RunParams:
     segments: SegmentParams = field(default_factory=SegmentParams)
     min_changed_fraction: float = 0.0
     min_region_fraction: float = 0.002
+    # our addition: the rule's region size is pixels × score ** this (0: pixels alone; 1 with
+    # min_region_fraction 0.001: a small sure region counts; off: docs/DECISIONS.md)
+    region_score_power: float = 0.0
     write_overlays: bool = True
     batch_size: int = 4
     workers: int = 2
@@ -398,6 +470,8 @@ class RunParams:
         for name in ("min_changed_fraction", "min_region_fraction"):
             value = getattr(self, name)
             _check(0.0 <= value < 1.0, f"run.{name}", value, "in [0, 1)")
+        power = self.region_score_power
+        _check(math.isfinite(power) and power >= 0, "run.region_score_power", power, ">= 0")
 
 
 @dataclass(frozen=True)
@@ -423,6 +497,13 @@ class Config:
         detect = params_to_dict(self.detect)
         if not self.detect.texture.enabled:
             del detect["texture"]  # a cue that is off changes nothing (and older hashes hold)
+        elif not self.detect.texture.max_global_shift_px:
+            del detect["texture"]["max_global_shift_px"]  # off: older hashes hold
+        if self.detect.classes.infer == "off":
+            del detect["classes"]["infer"]  # the roles as before it existed: older hashes hold
+        if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
+            for key in [k for k in detect["appearance"] if k.startswith("intensity")]:
+                del detect["appearance"][key]
         blob = {
             "detect": detect,
             "segments": {
@@ -433,6 +514,8 @@ class Config:
             "min_region_fraction": r.min_region_fraction,
             "write_overlays": r.write_overlays,
         }
+        if r.region_score_power:  # 0 is the rule before it existed: older hashes hold
+            blob["region_score_power"] = r.region_score_power
         return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:16]
 
     def replace_run(self, **changes: Any) -> Config:

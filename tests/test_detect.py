@@ -554,9 +554,13 @@ def test_a_city_coding_with_its_class_map_gives_the_same_result(images):
     assert np.array_equal(got.mask, want.mask)
     assert np.array_equal(got.raw_change, want.raw_change)
     assert [r.dominant_class for r in got.regions] == [classes.BUILDING]
-    # without the map, the city's codes are no role: its façade is no class boundary
-    unmapped = detect_view(images["p.png"], make_view("p.png"), nbs, theirs, PARAMS)
+    # without the map, the city's codes are no role: its façade is no class boundary ...
+    no_inference = dataclasses.replace(PARAMS, classes=ClassMap(infer="off"))
+    unmapped = detect_view(images["p.png"], make_view("p.png"), nbs, theirs, no_inference)
     assert {r.dominant_class for r in unmapped.regions} <= {classes.UNCLASSIFIED}
+    # ... unless its roles are inferred from the geometry (the default for such a cloud)
+    inferred = detect_view(images["p.png"], make_view("p.png"), nbs, theirs, PARAMS)
+    assert [r.dominant_class for r in inferred.regions] == [classes.BUILDING]
 
 
 def test_an_unclassified_cloud_is_named_once_per_cache(images, caplog):

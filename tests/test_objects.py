@@ -319,3 +319,108 @@ def test_a_regions_foot_is_the_old_class_just_below_it():
         mask, mask.astype(np.float32), depth, classes, intr, Pose(np.eye(3), np.zeros(3))
     )
     assert g.foot_class == 0
+
+
+def publish(index, regions_of, ground=None):
+    """Publish one night of the street (2026-11-01) in which ``regions_of(view)`` gives each
+    view's regions (labels 1, 2, …), and rebuild the objects with ``ground``."""
+    views = street(16, step_m=3.0)
+    segments = plan_segments(views, PARAMS)
+    seg = {n: s.id for s in segments for n in s.views}
+    records = []
+    for v in views:
+        regions = tuple(regions_of(v))
+        records.append(
+            ViewRecord(
+                f"{v.name}#aaa",
+                "h",
+                "p",
+                seg[v.name],
+                "done",
+                flagged=bool(regions),
+                score=0.8 if regions else 0.0,
+                regions=regions,
+                mask_path=f"/out/masks/{v.stem}.png" if regions else None,
+                center=tuple(float(x) for x in v.center),
+                captured_at="2026-11-01T02:00:00Z",
+                image=v.name,
+                camera=camera_json(v),
+            )
+        )
+    with ChangeIndex(index) as idx:
+        idx.add_segments(segments)
+        idx.publish("r", records)
+        rebuild_objects(idx, [s.id for s in segments], ground)
+
+
+CAR = np.array([E0 + 20.0, N0 + 1.0 + 6.0, 101.5])  # a car parked on the road since the scan
+
+
+def _car_regions(v):
+    """The car's region on the façade behind it; the first view that sees it has it cut
+    short by the image border, its centroid 3 m off, so not every region covers the point
+    where the lines of sight meet (the object's kind is unknown, not added)."""
+    if not sees(v, CAR):
+        return []
+    hit = _on_facade(v.center, CAR)
+    if v.name == seers(CAR)[0]:
+        hit = hit + np.array([3.0, 0.0, 0.0])
+    half = np.array([0.2, 0.05, 0.2])
+    return [
+        RegionRecord(1, 4000, 0.8, tuple(hit), tuple(hit - half), tuple(hit + half), C.BUILDING)
+    ]
+
+
+def test_an_object_whose_lines_of_sight_meet_over_the_road_is_a_transient(tmp_path):
+    def road_near_the_car(x, y):
+        return C.ROAD if abs(y - CAR[1]) < 2.5 else C.GROUND
+
+    publish(tmp_path / "a.sqlite", _car_regions, road_near_the_car)
+    (car,) = list_objects(tmp_path / "a.sqlite")
+    assert car["kind"] == "unknown"
+    assert sorted(v["image"] for v in car["views"] if v["sees_change"]) == seers(CAR)
+    assert car["transient"].startswith("stands on the road (its views' lines of sight meet")
+    # The same regions where the old cloud has ground (a sidewalk): a change of the street.
+    publish(tmp_path / "b.sqlite", _car_regions, lambda x, y: C.GROUND)
+    (thing,) = list_objects(tmp_path / "b.sqlite")
+    assert thing["kind"] == "unknown" and thing["transient"] is None
+
+
+def test_a_region_chained_to_a_change_whose_line_of_sight_disagrees_is_split_off(tmp_path):
+    """The views that see the new box each have its region on the façade; a view further
+    on has a region of something else (a car parked along the street) on the façade just
+    beside the first view's. The regions touch, so the links chain them, but that view's
+    line of sight passes metres from where the others meet: it is split off, and the box
+    stays one object of its own views."""
+    seeing = seers(BOX)
+    views = {v.name: v for v in street(16, step_m=3.0)}
+    beside = _on_facade(views[seeing[0]].center, BOX) + np.array([1.2, 0.0, 0.0])
+    stray_view = "a_011.jpg"
+    assert stray_view not in seeing and sees(views[stray_view], beside)
+    half = np.array([0.7, 0.05, 0.7])
+
+    def regions(v):
+        if v.name in seeing:
+            hit = _on_facade(v.center, BOX)
+        elif v.name == stray_view:
+            hit = beside
+        else:
+            return []
+        return [
+            RegionRecord(1, 4000, 0.8, tuple(hit), tuple(hit - half), tuple(hit + half), C.BUILDING)
+        ]
+
+    publish(tmp_path / "a.sqlite", regions)
+    objects = list_objects(tmp_path / "a.sqlite", sort="id")
+    assert len(objects) == 2
+    box = next(o for o in objects if o["kind"] == "added")
+    other = next(o for o in objects if o is not box)
+    assert sorted(v["image"] for v in box["views"] if v["sees_change"]) == seeing
+    assert box["transient"] is None
+    np.testing.assert_allclose(box["centroid"], BOX, atol=0.3)
+    assert [v["image"] for v in other["views"] if v["sees_change"]] == [stray_view]
+    assert other["transient"] is not None
+    # Without the stray view the box is the same object: the split left it whole.
+    publish(tmp_path / "b.sqlite", lambda v: regions(v) if v.name != stray_view else [])
+    (alone,) = list_objects(tmp_path / "b.sqlite")
+    assert alone["id"] == box["id"] and alone["centroid"] == box["centroid"]

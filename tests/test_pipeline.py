@@ -122,6 +122,25 @@ def test_a_view_is_flagged_by_its_largest_region_not_by_scattered_specks():
     assert not is_flagged(5000 / n, [5000], n, strict)
 
 
+def test_a_regions_score_weighs_its_size_when_the_rule_says_so():
+    n = 1920 * 1080
+    weighed = RunParams(min_region_fraction=0.001, region_score_power=1.0)  # 2073.6 px
+    # a small, sure region counts; a larger, doubtful one does not
+    assert is_flagged(2200 / n, [2200], n, weighed, [0.95])
+    assert not is_flagged(3000 / n, [3000], n, weighed, [0.5])
+    assert is_flagged(0.01, [3000, 2200], n, weighed, [0.5, 0.95])
+    # without scores, or with power 0, pixels alone decide (the rule before)
+    assert is_flagged(3000 / n, [3000], n, weighed)
+    pixels_alone = RunParams(min_region_fraction=0.001, region_score_power=0.0)
+    assert is_flagged(3000 / n, [3000], n, pixels_alone, [0.5])
+    with pytest.raises(ValueError, match="2 region scores for 1 regions"):
+        is_flagged(3000 / n, [3000], n, weighed, [0.5, 0.9])
+    from streetcd.errors import InputError
+
+    with pytest.raises(InputError, match="run.region_score_power"):
+        RunParams(region_score_power=-1.0)
+
+
 def test_read_rgb_refuses_a_cut_jpeg_and_a_wrong_size_naming_the_file(tmp_path):
     from streetcd.errors import CorruptFileError, InputError
     from streetcd.types import Intrinsics, Pose, View

@@ -1,6 +1,8 @@
 """Queries: every filter against a brute-force filter over all rows; the CLI's formats."""
 
 import json
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -143,6 +145,19 @@ def test_filters_match_brute_force(index_path, case):
             kw["detected_since"] = DATES[int(rng.integers(0, 3))]
         got = idx.query(**kw)
     assert [r.view for r in got] == [r.view for r in brute(rows, **kw)]
+
+
+@pytest.mark.parametrize("sort", [None, "score", "time"])
+@pytest.mark.parametrize("limit", [None, 0, 1, 7])
+def test_sort_and_limit_in_sqlite_match_sorting_in_python(index_path, sort, limit):
+    with ChangeIndex(index_path, create=False) as idx:
+        rows = idx.query(min_score=0.3)
+        got = idx.query(min_score=0.3, sort=sort, limit=limit)
+    if sort:  # the order `streetcd query --sort` promises (ties by score, then view)
+        rows.sort(key=lambda r: (-r.score, r.view))
+        if sort == "time":
+            rows.sort(key=lambda r: r.captured_at or r.detected_at, reverse=True)
+    assert got == rows[:limit]
 
 
 def test_since_is_the_capture_date_where_known_else_the_detection_date(index_path):
@@ -298,3 +313,16 @@ def test_bad_numbers_are_one_line_errors(index_path, args, message, views):
     assert out.exit_code == 1
     assert out.output.strip() == f"Error: {out.output.strip()[7:]}" and message in out.output
     assert len(out.output.strip().splitlines()) == 1
+
+
+def test_query_imports_neither_the_detector_nor_the_generator():
+    # `streetcd query` on a large index is mostly Python start and imports: the lazy command
+    # group (streetcd/cli/main.py) must not import numba or the generator for it
+    probe = (
+        "import sys; from click.testing import CliRunner; from streetcd.cli.main import cli; "
+        "r = CliRunner().invoke(cli, ['query', '--help']); assert r.exit_code == 0, r.output; "
+        "print(sorted(m for m in ('numba', 'streetcd.synth', 'streetcd.detect', 'cv2') "
+        "if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

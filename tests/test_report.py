@@ -482,3 +482,20 @@ def test_query_refuses_geojson_without_a_crs(tmp_path):
     assert query_cli("--index", str(index), "--format", "geojson", "--native-crs").exit_code == 0
     box = query_cli("--index", str(index), "--bbox", "0,0,1,1", "--bbox-crs", "EPSG:4326")
     assert box.exit_code == 1 and "has no CRS" in box.output
+
+
+@pytest.mark.parametrize("sort", [None, "score", "time"])
+@pytest.mark.parametrize("limit", [None, 0, 1, 2])
+@pytest.mark.parametrize("transients", [False, True])
+def test_query_cuts_objects_as_sorting_all_of_them_would(night, sort, limit, transients):
+    from streetcd.cli.query import run_query
+    from streetcd.report.export import sort_objects
+    from streetcd.store.objects import list_objects
+
+    every = list_objects(night.index)  # by confidence, then id: the default order
+    assert every
+    kept = [o for o in every if transients or o["transient"] is None]
+    expected = sort_objects(kept, sort) if sort else kept
+    expected = expected if limit is None else expected[:limit]
+    text = run_query(night.index, fmt="json", sort=sort, limit=limit, transients=transients)
+    assert json.loads(text)["objects"] == expected

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from streetcd.config import DetectParams, TextureParams
-from streetcd.detect.texture import _best_ncc, _best_ncc_on, _tiles_near, local_ncc, texture_change
+from streetcd.detect.texture import (
+    _best_ncc,
+    _best_ncc_on,
+    _tiles_near,
+    global_shift,
+    local_ncc,
+    texture_change,
+)
 from streetcd.types import Intrinsics, Pose
 
 RNG = np.random.default_rng(5)
@@ -148,3 +155,81 @@ def test_a_texture_cue_that_is_off_changes_no_hash():
     on = Config(DetectParams(texture=TextureParams(enabled=True)))
     assert off.results_hash() == off_too.results_hash() != on.results_hash()
     assert on.results_hash() == Config().results_hash()  # on by default
+
+
+def test_global_shift_finds_the_shift_of_the_whole_image_to_a_pixel():
+    a = cv2.GaussianBlur(RNG.uniform(0, 255, (200, 260)).astype(np.float32), (0, 0), 1.2)
+    valid = RNG.uniform(size=a.shape) > 0.1
+    valid[:, :30] = valid[80:120] = False  # holes, alike in both images
+    for dy, dx in ((5, -7), (0, 0), (-6, 3), (2, 1)):
+        b = _shifted(a, dy, dx, 0.0) * 0.7 + 30 + RNG.normal(0, 3, a.shape).astype(np.float32)
+        got = global_shift(a, b.astype(np.float32), valid, 8)
+        # b[y - s] = a[y] for s = -(dy, dx): the convention of _best_ncc's shifts
+        assert abs(got[0] + dy) <= 1 and abs(got[1] + dx) <= 1, (dy, dx, got)
+    # beyond the search range: the largest shift allowed, never more
+    b = _shifted(a, 12, 0, 0.0)
+    assert abs(global_shift(a, b, valid, 8)[0]) <= 8
+
+
+def test_best_ncc_around_an_offset_is_the_search_moved_there():
+    a, b, valid = _sparse_case()
+    params = TextureParams(window_px=7, min_std=2.0)
+    b_far = _shifted(b, 4, 3, 0.0)  # the neighbour now moved by (5, 1) in all: beyond radius 1
+    v_far = _shifted(valid, 4, 3, False)
+    near, t_near = _best_ncc(a, b_far, v_far, params, radius=1)
+    moved, t_moved = _best_ncc(a, b_far, v_far, params, radius=1, offset=(-5, -1))
+    assert np.median(near[t_near]) < 0.5 < 0.95 < np.median(moved[t_moved])
+
+
+def _yawed(pose: Pose, angle: float) -> Pose:
+    rot, _ = cv2.Rodrigues(np.array([0.0, angle, 0.0]))
+    return Pose.from_center(rot @ pose.R, pose.center)
+
+
+def test_a_neighbour_misregistered_beyond_the_window_search_is_aligned_first():
+    texture = _wall_texture()
+    view, other = _render(texture, 0.0), _render(texture, 1.0)
+    pose_p = Pose(np.eye(3), np.zeros(3))
+    # the neighbour's pose is wrong by a yaw that moves its pixels by 7 px: its images and
+    # poses disagree as a noisy registration's do
+    pose_q = _yawed(Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0])), 7.0 / INTR.fx)
+    depth_q = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    depth_p = depth_q.copy()
+    removed = np.zeros(depth_p.shape, bool)
+    removed[40:80, 60:100] = True
+    depth_p[removed] = 5.0
+    inner = np.zeros_like(removed)
+    inner[45:75, 65:95] = True
+    nbs = [(other, depth_q, INTR, pose_q, None)]
+    change = {}
+    for search in (0.0, 12.0):
+        params = TextureParams(scale=1.0, window_px=9, max_global_shift_px=search * 4000 / 160)
+        change[search], support = texture_change(
+            view, depth_p, INTR, pose_p, nbs, params, 0.3, registration_px=2.0
+        )
+        wall = ~removed & (support > 0)
+        wall[:, :20] = wall[:, -20:] = False
+        change[search] = (np.median(change[search][wall]), np.median(change[search][inner]))
+    assert change[0.0][0] > 0.5  # without the alignment the wall decorrelates
+    # with it only the object does (the yaw's perspective leaves the wall a little)
+    assert change[12.0][0] < 0.15 and change[12.0][1] > 0.6
+
+
+def test_the_alignment_does_not_take_a_removed_objects_parallax_for_registration_error():
+    texture = _wall_texture()
+    view, other = _render(texture, 0.0), _render(texture, 1.0)
+    pose_p = Pose(np.eye(3), np.zeros(3))
+    pose_q = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    depth_q = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    # a sparse cloud: the removed object's old surface is most of what has a surface
+    depth_p = np.full(depth_q.shape, np.nan, np.float32)
+    depth_p[:25] = WALL_Z
+    removed = np.zeros(depth_p.shape, bool)
+    removed[40:100, 30:130] = True
+    depth_p[removed] = 5.0  # 15 px of parallax against the wall: within the search below
+    inner = np.zeros_like(removed)
+    inner[45:95, 35:125] = True
+    params = TextureParams(scale=1.0, window_px=9, max_global_shift_px=20.0 * 4000 / 160)
+    nbs = [(other, depth_q, INTR, pose_q, None)]
+    change, _ = texture_change(view, depth_p, INTR, pose_p, nbs, params, 0.3, 2.0, where=removed)
+    assert np.median(change[inner]) > 0.6

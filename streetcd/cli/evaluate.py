@@ -96,6 +96,14 @@ def _write_json(path: Path | None, data: dict) -> None:
     "gt/<stem>.dontcare.png [, gt/<stem>.labels.png, case.json].",
 )
 @click.option(
+    "--index",
+    "index_path",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="With --scene: score this change index (from `streetcd run` on the scene's images) "
+    "instead of running the detector: flagged pixels on true changes and don't-care "
+    "disturbances, change objects against the manifest's changes, transients kept out.",
+)
+@click.option(
     "--json",
     "json_out",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -131,6 +139,7 @@ def _write_json(path: Path | None, data: dict) -> None:
 def evaluate(
     scene: Path | None,
     case: Path | None,
+    index_path: Path | None,
     json_out: Path | None,
     params_path: Path | None,
     max_views: int | None,
@@ -142,17 +151,25 @@ def evaluate(
     """Score the detector on a synthetic scene: Table 1 (GDR, FDR, TP, FP, kappa) with the
     paper's baselines, Table 2 per object type; on an annotated case (--case: the same rates,
     per object, and the views the nightly run's rule flags); or kappa against the
-    registration error."""
+    registration error. With --scene and --index: score a `streetcd run` index of the
+    scene's images instead (flagged pixels on true changes and on don't-care disturbances,
+    change objects against the manifest's changes, transients kept out and why)."""
     from rich.console import Console
 
     from streetcd.config import load_config
 
     console = Console(stderr=False)
+    if index_path is not None and scene is None:
+        raise click.UsageError("--index is scored against a synthetic scene: give --scene DIR")
     if sum(x is not None for x in (scene, case, sweep)) != 1:
         raise click.UsageError(
             "give exactly one of --scene DIR, --case DIR or --sweep-pose-noise LEVELS"
         )
     try:
+        if index_path is not None:
+            assert scene is not None
+            _write_json(json_out, _run_index(console, scene, index_path))
+            return
         config = load_config(params_path)
         params = config.detect
         if sweep is not None:
@@ -198,6 +215,72 @@ def _run_scene(
     return data
 
 
+def _run_index(console: Any, scene: Path, index_path: Path) -> dict:
+    """``--scene DIR --index INDEX``: score the index's change objects (issue 17, item 5)."""
+    from rich.table import Table
+
+    from streetcd.eval.objects import score_index
+
+    data = score_index(scene, index_path).as_dict()
+    px = data["pixels"]
+    t = Table(title=f"Flagged pixels of {data['flagged_views']} flagged views")
+    for col in ("pixels of", "pixels", "on true change (%)", "on don't-care (%)", "elsewhere"):
+        t.add_column(col, justify="left" if col == "pixels of" else "right")
+    for name, key in (
+        ("all flagged", "flagged"),
+        ("objects reported as changes", "reported"),
+        ("objects kept out (transients)", "kept_out"),
+    ):
+        r = px[key]
+        t.add_row(
+            name,
+            str(r["pixels"]),
+            _num(r["on_change_pct"]),
+            _num(r["on_dontcare_pct"]),
+            str(r["elsewhere"]),
+        )
+    console.print(t)
+    console.print(
+        f"true-change pixels kept in reported objects: {_num(px['true_change_kept_pct'])} % of "
+        f"those flagged; of the truth's: {_num(px['truth_flagged_pct'])} % flagged, "
+        f"{_num(px['truth_reported_pct'])} % reported; flagged views with no pixel on a true "
+        f"change: {data['flagged_views_without_change']} of {data['flagged_views']}"
+    )
+    t = Table(title="Changes of the manifest")
+    cols = ("id", "kind", "type", "truth px", "flagged px", "reported px", "objects", "kept out")
+    for col in cols:
+        t.add_column(col, justify="left" if col in ("kind", "type") else "right")
+    for c in data["changes"]:
+        t.add_row(
+            str(c["instance_id"]),
+            c["kind"],
+            c["type"],
+            str(c["truth_px"]),
+            str(c["flagged_px"]),
+            str(c["reported_px"]),
+            str(len(c["objects"])),
+            str(len(c["kept_out"])),
+        )
+    console.print(t)
+    console.print(
+        "(objects: reported as changes and matching it; kept out: transients matching it)"
+    )
+    console.print(
+        f"change objects: {data['objects_reported']} reported, {data['objects_kept_out']} kept "
+        f"out as transients, for {data['changes_total']} changes; found "
+        f"{data['changes_found']} of {data['changes_total']}, {data['changes_one_object']} by "
+        f"exactly one object; object precision {_num(data['object_precision_pct'])} %, "
+        f"recall {_num(data['object_recall_pct'])} %"
+    )
+    t = Table(title="Transients kept out, by reason")
+    for col in ("reason", "objects", "pixels", "on true change"):
+        t.add_column(col, justify="left" if col == "reason" else "right")
+    for reason, r in sorted(data["transient_reasons"].items()):
+        t.add_row(reason, str(r["objects"]), str(r["pixels"]), str(r["on_change"]))
+    console.print(t)
+    return data
+
+
 def _scene_flags(report: Any, run: Any) -> dict[str, int]:
     """How many views with and without a true change the run's flag rule would flag."""
     from streetcd.run.worker import is_flagged
@@ -207,7 +290,8 @@ def _scene_flags(report: Any, run: Any) -> dict[str, int]:
     )
     for v in report.views:
         pixels = [px for px, _ in v.regions]
-        flagged = is_flagged(sum(pixels) / max(v.n_pixels, 1), pixels, v.n_pixels, run)
+        scores = [sc for _, sc in v.regions]
+        flagged = is_flagged(sum(pixels) / max(v.n_pixels, 1), pixels, v.n_pixels, run, scores)
         which = "changed" if v.true_change else "unchanged"
         out[f"{which}_views"] += 1
         out[f"{which}_flagged"] += int(flagged)

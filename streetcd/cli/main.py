@@ -27,14 +27,27 @@ COMMANDS = [
 ]
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class LazyGroup(click.Group):
+    """A group that imports a command's module only when that command runs (or when the
+    group's help lists them all): `streetcd query` then never imports the detector, the
+    generator or numba (1.2 s → the query's own imports; docs/BENCHMARKS.md)."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(attr for _, attr in COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        for module_name, attr in COMMANDS:
+            if attr == cmd_name:
+                command = getattr(importlib.import_module(module_name), attr)
+                assert isinstance(command, click.Command)
+                return command
+        return None
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="streetcd")
 def cli() -> None:
     """Find what changed on a street: an older MLS point cloud against newer posed images."""
-
-
-for module_name, attr in COMMANDS:
-    cli.add_command(getattr(importlib.import_module(module_name), attr))
 
 
 def main() -> None:

@@ -146,6 +146,9 @@ def run_query(
     if not views:
         if detected_since is not None:
             raise InputError("--detected-since lists flagged views: add --views")
+        # list_objects' own order is --sort score's: SQLite then sorts and cuts, so that
+        # the first objects of a big index come fast
+        in_sql = sort in (None, "score")
         objects = list_objects(
             index,
             status=status,
@@ -154,11 +157,12 @@ def run_query(
             bbox=bbox,
             since=since,
             min_confidence=min_score,
+            transients=transients or status is not None,
+            limit=limit if in_sql else None,
         )
-        if not transients and status is None:
-            objects = [o for o in objects if o["transient"] is None]
-        objects = export.sort_objects(objects, sort) if sort else objects
-        objects = objects[:limit] if limit is not None else objects
+        if sort is not None and not in_sql:
+            objects = export.sort_objects(objects, sort)
+            objects = objects[:limit] if limit is not None else objects
         with ChangeIndex(index, readonly=True) as idx:
             crs = idx.crs
         if fmt in ("csv", "gpkg"):
@@ -175,12 +179,9 @@ def run_query(
             since=since,
             min_score=min_score,
             detected_since=detected_since,
+            sort=sort,  # score: best first; time: latest capture (else detection) first
+            limit=limit,
         )
-        if sort:  # score: best first; time: latest capture (else detection) first
-            rows.sort(key=lambda r: (-r.score, r.view))
-            if sort == "time":
-                rows.sort(key=lambda r: r.captured_at or r.detected_at, reverse=True)
-        rows = rows[:limit] if limit is not None else rows
         segments = idx.segments(ids=sorted({r.segment_id for r in rows if r.segment_id}))
         if fmt == "table":
             return segments_table(rows, segments) + "\n\n" + rows_as_table(rows)

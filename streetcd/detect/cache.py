@@ -68,8 +68,11 @@ class SurfaceCache:
             params.zbuffer,
             params.surface,
             params.max_range_m,
+            params.classes,  # the class map and its role inference decide the surface's classes
             wants_colour(cloud, params),
             id(cloud.rgb),
+            params.appearance.intensity,  # without colours the raster holds intensity, or none
+            id(cloud.intensity),
             id(cloud.xyz),
             id(cloud.classification),
             len(cloud.xyz),

@@ -44,9 +44,10 @@ from streetcd.detect.correlate import (
     weigh_low_classes,
 )
 from streetcd.detect.graphcut import cut_changes, nearest_index, node_energy
+from streetcd.detect.intensity import intensity_change, intensity_codes
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions
-from streetcd.detect.roles import role_codes, useless_classes
+from streetcd.detect.roles import cloud_roles, useless_classes
 from streetcd.detect.silhouette import near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
 from streetcd.detect.texture import texture_change
@@ -129,7 +130,7 @@ def view_surface_of(
         colours = cloud_colours(cloud, params, cache)
 
     def build() -> ViewSurface:
-        roles = role_codes(cloud.classification, params.classes)
+        roles = cloud_roles(cloud.xyz, cloud.classification, params.classes)
         return surface_for_view(
             cloud.xyz, roles, image, local.intrinsics, local.pose, params, colours()
         )[0]
@@ -149,14 +150,16 @@ def cloud_colours(
 ) -> Callable[[], np.ndarray | None]:
     """A function giving the cloud's colours as (N, 3) uint8 for the z-buffer (eq. 2), or
     None when the appearance check is off or the cloud has none; converted on first call
-    only (and kept by ``cache`` for the cloud's lifetime when one is given)."""
+    only (and kept by ``cache`` for the cloud's lifetime when one is given). A cloud without
+    colours gives its intensity codes instead (:func:`streetcd.detect.intensity.intensity_codes`)
+    with ``appearance.intensity`` (:func:`reference_kind` tells which)."""
     done: list[np.ndarray | None] = []
 
     def colours() -> np.ndarray | None:
         if not done:
-            rgb = None
-            if wants_colour(cloud, params) and cloud.rgb is not None:
-                rgb = cache.cloud_rgb8(cloud) if cache is not None else cloud_rgb8(cloud.rgb)
+            rgb = _rgb8_of(cloud, params, cache)
+            if rgb is None and params.appearance.enabled and params.appearance.intensity:
+                rgb = intensity_codes(cloud.intensity)
             done.append(rgb)
         return done[0]
 
@@ -233,9 +236,10 @@ def detect_view(
         change = _with_near_hypothesis(change, stretched, surf, local, used, params)
     used.clear()  # their envelopes and depths (360 MB at 12 MP) are not needed past eq. 5
     lap("raw_change")
-    if params.appearance.enabled and surf.colour is None:
-        _tell_no_colours(surfaces)
-    fused, appearance = fuse_appearance(image, surf, change, local, params)
+    kind = reference_kind(cloud, params, surfaces) if surf.colour is not None else None
+    if params.appearance.enabled and kind != "colour":
+        _tell_no_colours(surfaces, kind)
+    fused, appearance = fuse_appearance(image, surf, change, local, params, kind or "colour")
     if appearance is not None:
         lap("appearance")
     texture = None
@@ -278,21 +282,29 @@ def detect_view(
 
 
 def fuse_appearance(
-    image: np.ndarray, surf: ViewSurface, change: np.ndarray, local: View, params: DetectParams
+    image: np.ndarray,
+    surf: ViewSurface,
+    change: np.ndarray,
+    local: View,
+    params: DetectParams,
+    kind: str = "colour",
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The change eq. 7 sees, ``max(C_p, k · A_p)``, and ``A_p`` (:mod:`streetcd.detect.appearance`)
     of the view ``image`` (H, W, 3) uint8 on its surface ``surf``; ``(change, None)`` when the
-    check is off or the surface has no colours. change : (H, W) float32 raw change."""
+    check is off or the surface has no colours. change : (H, W) float32 raw change. kind
+    "intensity" (:func:`reference_kind`): ``surf.colour`` holds intensity codes, and ``A_p``
+    is the intensity check's (:mod:`streetcd.detect.intensity`)."""
     if not params.appearance.enabled or surf.colour is None:
         return change, None
-    appearance = appearance_change(
-        image,
-        surf.colour,
-        surf.valid,
-        surf.classes,
-        params.appearance,
-        registration_radius_px(local.intrinsics.width, params.correlate),
-    )
+    radius = registration_radius_px(local.intrinsics.width, params.correlate)
+    if kind == "intensity":
+        appearance = intensity_change(
+            image, surf.colour[..., 0], surf.valid, surf.classes, params.appearance, radius
+        )
+    else:
+        appearance = appearance_change(
+            image, surf.colour, surf.valid, surf.classes, params.appearance, radius
+        )
     return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
 
 
@@ -384,9 +396,41 @@ def _check_classes(cloud: PointCloud, params: DetectParams, cache: SurfaceCache 
         log.warning(why)
 
 
-def _tell_no_colours(cache: SurfaceCache | None) -> None:
-    """Warn that the appearance check is off for want of colours: once per cache (a worker's
-    run), or at every call without one."""
+def reference_kind(
+    cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None = None
+) -> str | None:
+    """What the surfaces' ``colour`` raster holds for ``cloud``: "colour" (the cloud's own,
+    for the reference-colour check), "intensity" (its intensity codes, for the intensity
+    check, when it has no colours), or None (the check is off, or the cloud has neither)."""
+    if not params.appearance.enabled:
+        return None
+    if _rgb8_of(cloud, params, cache) is not None:
+        return "colour"
+    if params.appearance.intensity and intensity_codes(cloud.intensity) is not None:
+        return "intensity"
+    return None
+
+
+def _rgb8_of(
+    cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None
+) -> np.ndarray | None:
+    """The cloud's 8-bit colours when the appearance check wants them, else None."""
+    if not wants_colour(cloud, params) or cloud.rgb is None:
+        return None
+    return cache.cloud_rgb8(cloud) if cache is not None else cloud_rgb8(cloud.rgb)
+
+
+def _tell_no_colours(cache: SurfaceCache | None, kind: str | None = None) -> None:
+    """Warn that the appearance check is off for want of colours (or, ``kind`` "intensity",
+    that the intensity check stands in for it): once per cache (a worker's run), or at every
+    call without one."""
+    if kind == "intensity":
+        if cache is None or cache.first_time("intensity instead of colours"):
+            log.info(
+                "the reference cloud has no colours: the intensity check "
+                "(streetcd.detect.intensity) stands in for the reference-colour check"
+            )
+        return
     if cache is None or cache.first_time("no colours"):
         log.warning(
             "the reference cloud has no colours (none, or all zero): the reference-colour check "

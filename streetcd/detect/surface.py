@@ -40,6 +40,7 @@ import numba
 import numpy as np
 
 from streetcd.config import DetectParams, SurfaceParams, ZBufferParams, scale_px
+from streetcd.detect.spacing import class_spacing
 from streetcd.detect.zbuffer import (
     ProjectedPoints,
     _block_cells,
@@ -72,10 +73,11 @@ class ViewSurface:
 
 
 @numba.njit(cache=True, nogil=True)
-def _dual_triangles(labels, seeds, uv, depth, max_jump, max_edge2):  # pragma: no cover - compiled
+def _dual_triangles(labels, seeds, uv, depth, lim):  # pragma: no cover - compiled
     """Triangles where 3–4 Voronoi labels meet in a 2 × 2 block, filtered (see module doc).
 
     labels : (gh, gw) int32, 1-based seed label per cell; seeds : (S,) int64 point per label.
+    lim : the filters' limits, see :func:`_emit`.
     Returns (T, 3) int32 point indices, each row sorted ascending (duplicates possible).
     """
     gh, gw = labels.shape
@@ -109,8 +111,7 @@ def _dual_triangles(labels, seeds, uv, depth, max_jump, max_edge2):  # pragma: n
                     seeds[uniq[2] - 1],
                     uv,
                     depth,
-                    max_jump,
-                    max_edge2,
+                    lim,
                 )
                 continue
             p0 = seeds[quad[0] - 1]
@@ -123,11 +124,11 @@ def _dual_triangles(labels, seeds, uv, depth, max_jump, max_edge2):  # pragma: n
             a13 = _area2(uv, p0, p1, p3) * _area2(uv, p1, p2, p3) > 0.0
             use02 = _incircle(uv, p0, p1, p2, p3) <= 0.0
             if (use02 and a02) or not a13:
-                n = _emit(out, n, p0, p1, p2, uv, depth, max_jump, max_edge2)
-                n = _emit(out, n, p0, p2, p3, uv, depth, max_jump, max_edge2)
+                n = _emit(out, n, p0, p1, p2, uv, depth, lim)
+                n = _emit(out, n, p0, p2, p3, uv, depth, lim)
             else:
-                n = _emit(out, n, p0, p1, p3, uv, depth, max_jump, max_edge2)
-                n = _emit(out, n, p1, p2, p3, uv, depth, max_jump, max_edge2)
+                n = _emit(out, n, p0, p1, p3, uv, depth, lim)
+                n = _emit(out, n, p1, p2, p3, uv, depth, lim)
     return out[:n]
 
 
@@ -195,8 +196,19 @@ def _dist2(uv, a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _emit(out, n, a, b, c, uv, depth, max_jump, max_edge2):  # pragma: no cover - compiled
-    """Append triangle (a, b, c) sorted if it passes the depth-jump, edge and area filters."""
+def _emit(out, n, a, b, c, uv, depth, lim):  # pragma: no cover - compiled
+    """Append triangle (a, b, c) sorted if it passes the depth-jump, edge and area filters.
+
+    lim : (max_jump m, max_edge² px², jump_pt (N,) m, edge_pt (N,) px): a triangle may span
+    max(max_jump, the least jump_pt of its vertices) in depth and have edges up to
+    max(max_edge, the largest edge_pt of its vertices); (0,) arrays: the scalars alone.
+    """
+    max_jump, max_edge2, jump_pt, edge_pt = lim
+    if jump_pt.shape[0] > 0:  # the densest vertex decides: objects stay apart from sparse ground
+        max_jump = max(max_jump, min(jump_pt[a], jump_pt[b], jump_pt[c]))
+    if edge_pt.shape[0] > 0:  # the sparsest vertex decides: its spacing must be bridged
+        e = max(edge_pt[a], edge_pt[b], edge_pt[c])
+        max_edge2 = max(max_edge2, e * e)
     za, zb, zc = depth[a], depth[b], depth[c]
     if max(za, zb, zc) - min(za, zb, zc) > max_jump:
         return n
@@ -251,6 +263,7 @@ def _triangulate(
     image_width: int,
     params: SurfaceParams,
     cell_px: int,
+    spacing: tuple[np.ndarray, float] | None = None,
 ) -> np.ndarray:
     h, w = shape
     cells = _block_cells(uv, depth, h, w, cell_px)
@@ -267,10 +280,27 @@ def _triangulate(
     # the spacing the block z-buffer leaves (one point per w-cell), and the surface falls
     # apart. Never filter edges shorter than EDGE_FLOOR_CELLS grid cells.
     max_edge = max(scale_px(params.max_edge_px, image_width), EDGE_FLOOR_CELLS * cell_px)
-    tris = _dual_triangles(
-        labels, seeds, uv, depth, float(params.max_depth_jump_m), float(max_edge * max_edge)
-    )
-    return _unique_rows(tris)
+    jump_pt, edge_pt = _spacing_limits(depth, params, spacing)
+    lim = (float(params.max_depth_jump_m), float(max_edge * max_edge), jump_pt, edge_pt)
+    return _unique_rows(_dual_triangles(labels, seeds, uv, depth, lim))
+
+
+def _spacing_limits(
+    depth: np.ndarray, params: SurfaceParams, spacing: tuple[np.ndarray, float] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point limits from the cloud's own spacing (:mod:`streetcd.detect.spacing`):
+    ``spacing_jump_factor`` · s_i metres and ``spacing_edge_factor`` · f · s_i / z_i px, each
+    (N,) float64, or (0,) when its factor is 0 or ``spacing`` (s (N,) m, f px) is None."""
+    none = np.empty(0, np.float64)
+    if spacing is None:
+        return none, none
+    s, focal_px = spacing
+    jump, edge = none, none
+    if params.spacing_jump_factor > 0:
+        jump = np.ascontiguousarray(params.spacing_jump_factor * s, np.float64)
+    if params.spacing_edge_factor > 0:
+        edge = np.ascontiguousarray(params.spacing_edge_factor * focal_px * s / depth, np.float64)
+    return jump, edge
 
 
 EDGE_FLOOR_CELLS = 3  # see _grid_triangles
@@ -456,6 +486,7 @@ def view_surface(
     *,
     cell_px: int = 1,
     colours: np.ndarray | None = None,
+    spacing: tuple[np.ndarray, float] | None = None,
 ) -> ViewSurface:
     """Per-pixel depth and class of a view from its projected points (paper §3.3).
 
@@ -465,6 +496,9 @@ def view_surface(
     shape : (H, W) of the image.
     params : triangle filters, see :func:`triangulate`; cell_px as there.
     colours : (N, 3) uint8 RGB of the points, or None.
+    spacing : ((N,) float64 metres, focal length px) or None: each point's cloud spacing
+        (:mod:`streetcd.detect.spacing`), which widens the filters by
+        ``params.spacing_edge_factor`` and ``params.spacing_jump_factor`` (None: fixed filters).
 
     Returns
     -------
@@ -477,7 +511,9 @@ def view_surface(
     if int(cell_px) < 1:
         raise InputError(f"cell_px must be >= 1, got {cell_px}")
     h, w = int(shape[0]), int(shape[1])
-    tris = _triangulate(uv, depth, (h, w), w, params, int(cell_px))
+    if spacing is not None and np.shape(spacing[0]) != depth.shape:
+        raise InputError(f"spacing must be {depth.shape}, got {np.shape(spacing[0])}")
+    tris = _triangulate(uv, depth, (h, w), w, params, int(cell_px), spacing)
     return rasterise(uv, depth, classes, tris, (h, w), colours)
 
 
@@ -534,7 +570,16 @@ def surface_for_view(
         )
     zparams = _zbuffer_params_for(params.zbuffer, intrinsics.width)
     focal_px = 0.5 * (intrinsics.fx + intrinsics.fy)
-    kept = points.take(weighted_zbuffer(points.uv, points.depth, image, zparams, focal_px=focal_px))
+    spacing = _point_spacing(xyz_local, cloud_classes, points, params)
+    keep = weighted_zbuffer(
+        points.uv,
+        points.depth,
+        image,
+        zparams,
+        focal_px=focal_px,
+        spacing_m=None if spacing is None else zparams.spacing_factor * spacing,
+    )
+    kept = points.take(keep)
     surface = view_surface(
         kept.uv,
         kept.depth,
@@ -543,8 +588,20 @@ def surface_for_view(
         params.surface,
         cell_px=zparams.block_window_px,
         colours=None if rgb is None else rgb8(np.asarray(rgb)[kept.index]),
+        spacing=None if spacing is None else (spacing[keep], focal_px),
     )
     return surface, kept
+
+
+def _point_spacing(
+    xyz_local: np.ndarray, cloud_classes: np.ndarray, points: ProjectedPoints, params: DetectParams
+) -> np.ndarray | None:
+    """(M,) float64 metres: the cloud's measured spacing of each projected point's class
+    (:func:`streetcd.detect.spacing.class_spacing`), or None when no filter uses it."""
+    sp, zp = params.surface, params.zbuffer
+    if sp.spacing_edge_factor <= 0 and sp.spacing_jump_factor <= 0 and zp.spacing_factor <= 0:
+        return None
+    return class_spacing(xyz_local, cloud_classes)[points.classes]
 
 
 def rgb8(rgb: np.ndarray) -> np.ndarray:

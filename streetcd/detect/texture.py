@@ -18,9 +18,15 @@ over a ``w × w`` window ``N(p)`` of pixels where both are valid::
     T_p      = min_q T_q(p)                (like eq. 5: changed only if no neighbour agrees)
 
 Windows without texture (a standard deviation below ``min_std`` grey levels) give no
-evidence, as do pixels no neighbour sees. Computed at ``scale`` of the view's resolution, which
-helps it tolerate registration error, and never wider than ``max_work_width_px``, which bounds
-its cost on large images.
+evidence, as do pixels no neighbour sees. Computed at ``scale`` of the view's resolution,
+which helps it tolerate registration error, and never wider than ``max_work_width_px``, which
+bounds its cost on large images.
+
+Registration error is tolerated in two steps: the warped neighbour is first aligned by the one
+whole-pixel shift, up to ``max_global_shift_px``, that best correlates it with the view over
+the pixels away from the wanted ones (pose error moves a view's pixels nearly alike: mostly a
+rotation), then each window takes its best NCC over shifts of up to
+``registration_tolerance_px`` around that (what the alignment leaves: roll, depth parallax).
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ import cv2
 import numba
 import numpy as np
 
-from streetcd.config import TextureParams
+from streetcd.config import TextureParams, scale_px
 from streetcd.detect.correlate import HoleDepths, Neighbour, camera_rays, warp_neighbour
 from streetcd.types import Intrinsics, Pose
 
@@ -92,7 +98,10 @@ def texture_change(
     neighbour's NCC is the best over the warped neighbour shifted by up to that much (at the
     cue's scale), as eq. 5's colour envelope tolerates it for single pixels. where : (H, W)
     bool, the pixels the cue is wanted at (None: all); only the box around them, grown by
-    the window, is computed, and the cue is 0 outside it.
+    the window, is computed, and the cue is 0 outside it. ``params.max_global_shift_px``
+    (at ``REFERENCE_WIDTH_PX``): the largest shift of the whole warped neighbour against the
+    view that :func:`global_shift` looks for (0: none); the shifts of ``registration_px`` are
+    searched around the one found.
     Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
     textured evidence per pixel).
     """
@@ -102,7 +111,8 @@ def texture_change(
     intr_s = intrinsics_p.scaled(small[0] / w)
     depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
     radius = round(registration_px * s)
-    box = _box(where, small, params.window_px + radius)
+    search = round(scale_px(params.max_global_shift_px, w, minimum=0.0) * s)
+    box = _box(where, small, params.window_px + radius + search)
     change_s = np.zeros(depth_s.shape, np.float32)
     support_s = np.zeros(depth_s.shape, np.uint8)
     if box is not None:
@@ -113,10 +123,16 @@ def texture_change(
         change = np.full(depth_b.shape, np.inf, np.float32)
         support = np.zeros(depth_b.shape, np.uint8)
         tiles = _tiles_near(where, small, box, reach=params.window_px // 2 + radius)
+        background = _background(where, small, box, params.window_px) if search > 0 else None
         for nb_image, nb_depth, nb_intr, nb_pose, holes in neighbours:
             nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
             warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
-            ncc, textured = _best_ncc_on(tiles, grey_p, warped, valid, params, radius)
+            offset = (0, 0)
+            if background is not None:
+                offset = global_shift(grey_p, warped, valid & background, search)
+            ncc, textured = _best_ncc_on(
+                _reach_for(tiles, offset), grey_p, warped, valid, params, radius, offset
+            )
             np.minimum(change, np.clip(1.0 - ncc, 0.0, 1.0), out=change, where=textured)
             support += textured
         change[support == 0] = 0.0
@@ -219,6 +235,116 @@ def _tiles_near(
     return _Tiles(np.argwhere(wanted) * t, (h, w), reach)
 
 
+def _background(
+    where: np.ndarray | None, small: tuple[int, int], box: tuple[slice, slice], margin: int
+) -> np.ndarray:
+    """(h, w) bool over ``box`` at the cue's size ``small`` (W, H): the pixels farther than
+    ``margin`` px from ``where``, on which :func:`global_shift` aligns a neighbour. The wanted
+    pixels are the candidates for change: a removed object's own parallax must not be taken
+    for registration error (on a sparse real cloud the dense objects are most of the surface).
+    """
+    rows, cols = box
+    if where is None:
+        return np.ones((rows.stop - rows.start, cols.stop - cols.start), bool)
+    mask = cv2.resize(where.view(np.uint8), small, interpolation=cv2.INTER_NEAREST)
+    mask = cv2.dilate(mask, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8))
+    return mask[rows, cols] == 0
+
+
+def _reach_for(tiles: _Tiles | None, offset: tuple[int, int]) -> _Tiles | None:
+    """``tiles`` with their context grown by the larger side of ``offset`` (dy, dx): the
+    shifted neighbour's pixels a window reaches must lie in each padded tile."""
+    if tiles is None or offset == (0, 0):
+        return tiles
+    return _Tiles(tiles.origins, tiles.shape, tiles.reach + max(abs(offset[0]), abs(offset[1])))
+
+
+GLOBAL_SHIFT_MIN_PX = 32
+"""The smallest side of an image level :func:`global_shift` searches on (coarser levels have
+too few pixels for a shift to stand out)."""
+
+
+def global_shift(
+    a: np.ndarray, b: np.ndarray, valid: np.ndarray, max_shift: int
+) -> tuple[int, int]:
+    """The whole-pixel shift (dy, dx), each within ``max_shift``, by which ``b`` best matches
+    ``a``: the correlation of their band-passed grey levels over the pixels where both are
+    ``valid``, with ``b[y - dy, x - dx]`` against ``a[y, x]`` (as :func:`_best_ncc`).
+
+    a, b : (H, W) float32 grey levels; valid : (H, W) bool. Searched coarse to fine on an
+    image pyramid (the full square at the coarsest level, ±1 px at each finer one) down to
+    half the input's resolution, so it is exact to ±1 px of the input (the windows' own search
+    covers that) and costs a few passes over a quarter of the pixels whatever ``max_shift``.
+    (0, 0) when nothing correlates.
+    """
+    levels = [(np.asarray(a, np.float32), np.asarray(b, np.float32), np.asarray(valid, bool))]
+    while (max_shift >> len(levels)) >= 1 and min(levels[-1][0].shape) >= 2 * GLOBAL_SHIFT_MIN_PX:
+        levels.append(_half(*levels[-1]))
+    finest = min(1, len(levels) - 1)
+    dy = dx = 0
+    for depth in range(len(levels) - 1, finest - 1, -1):
+        la, lb, lv = levels[depth]
+        coarsest = depth == len(levels) - 1
+        reach = -(-max_shift >> depth) if coarsest else 1  # ceil(max_shift / 2**depth)
+        cy, cx = (0, 0) if coarsest else (2 * dy, 2 * dx)
+        dy, dx = _best_global(_band_pass(la, lv), _band_pass(lb, lv), lv, cy, cx, reach)
+    dy, dx = dy << finest, dx << finest
+    return max(-max_shift, min(max_shift, dy)), max(-max_shift, min(max_shift, dx))
+
+
+def _half(
+    a: np.ndarray, b: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pyramid level down: each 2 × 2 block's mean over its valid pixels, valid where all
+    four are (a block across a hole's edge would carry the edge, alike in both images)."""
+    h, w = a.shape
+    size = (w // 2, h // 2)
+    v = valid[: 2 * size[1], : 2 * size[0]].astype(np.float32)
+    n = np.maximum(cv2.resize(v, size, interpolation=cv2.INTER_AREA), np.float32(1e-6))
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        x = x[: 2 * size[1], : 2 * size[0]] * v
+        return cv2.resize(x, size, interpolation=cv2.INTER_AREA) / n
+
+    return mean(a), mean(b), n > 0.999
+
+
+def _band_pass(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``x`` less its 5 × 5 mean over the valid pixels: the texture, not the light (0 where
+    not valid)."""
+    v = valid.astype(np.float32)
+    k = (5, 5)
+    n = cv2.boxFilter(v, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    s = cv2.boxFilter(x * v, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return np.where(valid, x - s / np.maximum(n, 1.0), 0.0).astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def _best_global(a, b, valid, cy, cx, reach):  # pragma: no cover - numba
+    """The (dy, dx) within ``reach`` of (cy, cx) with the largest correlation
+    sum(a·b') / sqrt(sum a² · sum b'²) over the pixels valid in both, b' = b[y − dy, x − dx];
+    a, b (H, W) float32, valid (H, W) bool. (cy, cx) when no shift has 64 such pixels."""
+    h, w = a.shape
+    best, by, bx = -2.0, cy, cx
+    for dy in range(cy - reach, cy + reach + 1):
+        for dx in range(cx - reach, cx + reach + 1):
+            sab = saa = sbb = 0.0
+            n = 0
+            for y in range(max(0, dy), min(h, h + dy)):
+                for x in range(max(0, dx), min(w, w + dx)):
+                    if valid[y, x] and valid[y - dy, x - dx]:
+                        av, bv = a[y, x], b[y - dy, x - dx]
+                        sab += av * bv
+                        saa += av * av
+                        sbb += bv * bv
+                        n += 1
+            if n >= 64 and saa > 0.0 and sbb > 0.0:
+                c = sab / np.sqrt(saa * sbb)
+                if c > best:
+                    best, by, bx = c, dy, dx
+    return by, bx
+
+
 def _best_ncc_on(
     tiles: _Tiles | None,
     a: np.ndarray,
@@ -226,24 +352,36 @@ def _best_ncc_on(
     valid: np.ndarray,
     params: TextureParams,
     radius: int,
+    offset: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_best_ncc` on the pixels of ``tiles`` only (all pixels for None); 0 / False
     elsewhere."""
     if tiles is None:
-        return _best_ncc(a, b, valid, params, radius)
+        return _best_ncc(a, b, valid, params, radius, offset)
     if len(tiles.origins) == 0:
         return np.zeros(a.shape, np.float32), np.zeros(a.shape, bool)
     ncc, textured = _best_ncc(
-        tiles.gather(a, 0.0), tiles.gather(b, 0.0), tiles.gather(valid, False), params, radius
+        tiles.gather(a, 0.0),
+        tiles.gather(b, 0.0),
+        tiles.gather(valid, False),
+        params,
+        radius,
+        offset,
     )
     return tiles.scatter(ncc, 0.0), tiles.scatter(textured, False)
 
 
 def _best_ncc(
-    a: np.ndarray, b: np.ndarray, valid: np.ndarray, params: TextureParams, radius: int
+    a: np.ndarray,
+    b: np.ndarray,
+    valid: np.ndarray,
+    params: TextureParams,
+    radius: int,
+    offset: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`local_ncc` of ``a`` and ``b`` shifted by every whole-pixel offset up to
-    ``radius`` (a square), the best at each pixel; textured where any shift is.
+    ``radius`` (a square) around ``offset`` (dy, dx), the best at each pixel; textured where
+    any shift is.
 
     Per shift, one numba pass writes the six products whose window sums the NCC needs
     (1, a, a², b, b², ab over the pixels valid in both), one six-channel box filter sums
@@ -259,8 +397,9 @@ def _best_ncc(
     k = int(params.window_px)
     enough = np.float32(0.5 * k * k)
     floor = np.float32(params.min_std * params.min_std)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
+    oy, ox = offset
+    for dy in range(oy - radius, oy + radius + 1):
+        for dx in range(ox - radius, ox + radius + 1):
             _products(a, b, valid, dy, dx, products)
             for c in range(6):  # six planes: one plane at a time is twice as fast in OpenCV
                 cv2.boxFilter(

@@ -368,8 +368,11 @@ def block_zbuffer(
 
 
 @numba.njit(cache=True, nogil=True)
-def _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale):  # pragma: no cover
+def _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale, reach_pt):  # pragma: no cover
     """The occupied block cells, packed in row-major order, with what eq. 2–3 read of each.
+
+    ``reach_pt`` (N,) float64 f·s_i px·m per point, or (0,): each point reaches
+    ``max(half, max(reach_scale, reach_pt[i]) / z_i)`` px (``reach_scale <= 0`` and (0,): half).
 
     Returns ``table`` (M, 7) float64 rows (z, u, v, R, G, B, reach) of the M points in
     ``cells``, ``ids`` (M,) int64 their cell indices and ``start`` (gh, gw + 1) int64: the
@@ -404,7 +407,8 @@ def _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale):  # pragma
         table[k, 3] = float(image[row, col, 0])
         table[k, 4] = float(image[row, col, 1])
         table[k, 5] = float(image[row, col, 2])
-        table[k, 6] = half if reach_scale <= 0.0 else max(half, reach_scale / depth[i])
+        scale = reach_scale if reach_pt.shape[0] == 0 else max(reach_scale, reach_pt[i])
+        table[k, 6] = half if scale <= 0.0 else max(half, scale / depth[i])
         ids[k] = cell
         k += 1
     return table, ids, start
@@ -428,6 +432,7 @@ def _weighted_erase(
     focal,
     surround,
     reach_scale,
+    reach_pt,
 ):  # pragma: no cover - compiled
     """Erase flags for the BWZB points ``cells`` (see :func:`weighted_zbuffer`).
 
@@ -448,7 +453,7 @@ def _weighted_erase(
     height, width = image.shape[0], image.shape[1]
     gw = (width + window - 1) // window
     gh = (height + window - 1) // window
-    table, ids, start = _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale)
+    table, ids, start = _packed_cells(cells, uv, depth, image, gh, gw, half, reach_scale, reach_pt)
     m = ids.shape[0]
     state = np.zeros(m, dtype=np.uint8)  # _EMPTY, _ONE, _ARC or _ERASED per centre
     arc = np.empty((m, 4), dtype=np.float64)  # (Δu, Δv) of the arc's two ends
@@ -539,6 +544,7 @@ def weighted_zbuffer(
     params: ZBufferParams,
     *,
     focal_px: float | None = None,
+    spacing_m: np.ndarray | None = None,
 ) -> np.ndarray:
     """Weighted-window z-buffer (WWZB), paper eq. 1–3.
 
@@ -554,6 +560,9 @@ def weighted_zbuffer(
         superset, and turns on the adaptive window when ``params.point_spacing_m > 0``
         (neighbour i reaches ``max(w1 / 2, focal_px · s / z_i)`` px). See the module
         docstring.
+    spacing_m : (N,) float64 metres per point, or None: with ``focal_px``, point i's s is
+        ``max(params.point_spacing_m, spacing_m[i])`` (the cloud's own spacing where it is
+        sparser, :mod:`streetcd.detect.spacing`); None: ``point_spacing_m`` for all.
 
     Returns
     -------
@@ -574,6 +583,11 @@ def weighted_zbuffer(
     half = int(params.weighted_window_px) // 2
     # the adaptive window needs the focal length to turn metres into pixels
     reach_scale = 0.0 if focal_px is None else float(focal_px) * float(params.point_spacing_m)
+    reach_pt = np.empty(0, np.float64)
+    if spacing_m is not None and focal_px is not None:
+        reach_pt = float(focal_px) * np.ascontiguousarray(spacing_m, dtype=np.float64)
+        if reach_pt.shape != depth.shape:
+            raise InputError(f"spacing_m must be {depth.shape}, got {reach_pt.shape}")
     erase = _weighted_erase(
         cells,
         uv,
@@ -588,5 +602,6 @@ def weighted_zbuffer(
         0.0 if focal_px is None else float(focal_px),
         focal_px is not None,
         reach_scale,
+        reach_pt,
     )
     return _sorted_indices(np.where(erase, -1, cells), depth.shape[0])

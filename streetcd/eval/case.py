@@ -253,11 +253,13 @@ def view_flag(
     dontcare: np.ndarray,
     region_pixels: Sequence[int],
     run: RunParams,
+    region_scores: Sequence[float] | None = None,
 ) -> ViewFlag:
     """Flag one view as the nightly run does and count its pixels.
 
     detected, truth, dontcare : (H, W) bool (or 0/255). region_pixels : pixels per changed
-    region of the detection (:attr:`DetectionResult.regions`). The changed fraction is the
+    region of the detection (:attr:`DetectionResult.regions`), region_scores : their scores
+    (None: the rule's pixels alone). The changed fraction is the
     detected share of all H·W pixels, as the detector reports it.
     """
     det = np.asarray(detected).astype(bool, copy=False)
@@ -271,7 +273,7 @@ def view_flag(
     on_dc = int(np.count_nonzero(det & dc))
     return ViewFlag(
         true_change=bool(np.any(gt & ~dc)),
-        flagged=is_flagged(n_all / det.size, list(region_pixels), det.size, run),
+        flagged=is_flagged(n_all / det.size, list(region_pixels), det.size, run, region_scores),
         detected_px=n_all - on_dc,
         cared_px=int(det.size - np.count_nonzero(dc)),
         detected_all_px=n_all,
@@ -455,6 +457,7 @@ class CaseViewOutcome:
     raw_change_truth / raw_change_rest : mean raw change ``C_p`` (eq. 5, in [0, 1]) over the
     cared-for pixels on / off the truth (NaN where there are none): whether eq. 5 sees the
     change at all. error : why the view has no detection (it saw no reference point), else None.
+    regions : the detection's regions as (pixels, score), as ``evaluate --scene`` lists them.
     """
 
     name: str
@@ -471,6 +474,7 @@ class CaseViewOutcome:
     raw_change_truth: float = math.nan
     raw_change_rest: float = math.nan
     error: str | None = None
+    regions: tuple[tuple[int, float], ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
         used = set(self.used)
@@ -482,6 +486,7 @@ class CaseViewOutcome:
             "detected_px": self.flag.detected_px,
             "detected_dontcare_px": self.flag.detected_dontcare_px,
             "largest_region_px": self.largest_region_px,
+            "regions": [list(r) for r in self.regions],
             **summarize([self.score]).as_dict(),
             "surface_pct": 100.0 * self.surface_share,
             "evidence_pct": 100.0 * self.evidence_share,
@@ -591,10 +596,12 @@ def evaluate_case(
         if result is None:
             mask = np.zeros(truth.mask.shape, dtype=bool)
             regions: list[int] = []
+            region_scores: list[float] | None = None
             classes = None
         else:
             mask, classes = result.mask, result.classes
             regions = [g.pixels for g in result.regions]
+            region_scores = [g.score for g in result.regions]
         score = score_view(mask, truth.mask, truth.instances, truth.dontcare, class_raster=classes)
         on_truth = truth.mask & ~truth.dontcare
         rest = ~truth.mask & ~truth.dontcare
@@ -612,7 +619,7 @@ def evaluate_case(
             CaseViewOutcome(
                 v.name,
                 score,
-                view_flag(mask, truth.mask, truth.dontcare, regions, config.run),
+                view_flag(mask, truth.mask, truth.dontcare, regions, config.run, region_scores),
                 seconds,
                 tuple((n.name, float(np.linalg.norm(n.center - v.center))) for n in nbs),
                 () if result is None else tuple(result.neighbours),
@@ -622,6 +629,9 @@ def evaluate_case(
                 int(np.count_nonzero(on_truth)),
                 *diagnostics,
                 error,
+                ()
+                if result is None
+                else tuple((int(g.pixels), round(float(g.score), 4)) for g in result.regions),
             )
         )
         if progress is not None:

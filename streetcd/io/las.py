@@ -411,6 +411,13 @@ def load_clouds(paths: Sequence[str | Path]) -> PointCloud:
         xyz=np.concatenate([c.xyz for c in clouds]),
         origin=first.origin,
         classification=np.concatenate([c.classification for c in clouds]),
+        # intensity likewise all or none: the intensity check (streetcd.detect.intensity)
+        # reads it when there are no colours
+        intensity=(
+            np.concatenate([c.intensity for c in clouds])
+            if all(c.intensity is not None for c in clouds)
+            else None
+        ),
         # colours only when every file has them (the appearance check needs all or none)
         rgb=(
             np.concatenate([c.rgb for c in clouds])

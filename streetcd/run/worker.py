@@ -337,6 +337,7 @@ class WorkerRuntime:
                 [g.pixels for g in result.regions],
                 result.mask.size,
                 config.run,
+                [g.score for g in result.regions],
             )
             mask_path = overlay_path = None
             writing: list[Future] = []
@@ -493,12 +494,28 @@ def batch_views(batch: Batch) -> tuple[View, ...]:
 
 
 def is_flagged(
-    changed_fraction: float, region_pixels: Sequence[int], n_pixels: int, params: RunParams
+    changed_fraction: float,
+    region_pixels: Sequence[int],
+    n_pixels: int,
+    params: RunParams,
+    region_scores: Sequence[float] | None = None,
 ) -> bool:
     """Whether a view goes into the index's flagged list: more than
-    ``params.min_changed_fraction`` of its ``n_pixels`` changed and its largest region (pixels
-    per region in ``region_pixels``) covers at least ``params.min_region_fraction`` of them."""
-    largest = max(region_pixels, default=0)
+    ``params.min_changed_fraction`` of its ``n_pixels`` changed and its largest region covers
+    at least ``params.min_region_fraction`` of them, a region's size being its pixels (per
+    region in ``region_pixels``) × its score (``region_scores``, in [0, 1]; 1 when not given)
+    to the power ``params.region_score_power`` (0: pixels alone)."""
+    power = params.region_score_power
+    if region_scores is None or not power:
+        sizes = [float(px) for px in region_pixels]
+    else:
+        if len(region_scores) != len(region_pixels):
+            raise ValueError(f"{len(region_scores)} region scores for {len(region_pixels)} regions")
+        sizes = [
+            px * min(max(float(sc), 0.0), 1.0) ** power
+            for px, sc in zip(region_pixels, region_scores, strict=True)
+        ]
+    largest = max(sizes, default=0.0)
     return (
         changed_fraction > params.min_changed_fraction
         and largest > 0

@@ -43,6 +43,12 @@ from streetcd.errors import CRSMismatchError, InputError, MissingInputError
 from streetcd.store.records import FlaggedRow, RegionRecord, SegmentRow, ViewRecord
 
 SCHEMA_VERSION = "4"
+# ChangeIndex.query's orders, by its ``sort``: time is the capture's (else the detection's)
+QUERY_ORDER = {
+    None: "f.segment_id, f.view",
+    "score": "f.score DESC, f.view",
+    "time": "coalesce(f.captured_at, f.detected_at) DESC, f.score DESC, f.view",
+}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -434,6 +440,8 @@ class ChangeIndex:
         since: str | None = None,
         min_score: float | None = None,
         detected_since: str | None = None,
+        sort: str | None = None,
+        limit: int | None = None,
     ) -> list[FlaggedRow]:
         """Flagged views matching every filter given, ordered by segment then view.
 
@@ -446,7 +454,12 @@ class ChangeIndex:
         change since the date is never left out.
         detected_since : views detected (published) at or after it.
         min_score : score ≥ this.
+        sort : ``score`` (best first, then view) or ``time`` (latest capture, else detection,
+        first; then as ``score``) instead of segment and view. limit : at most this many
+        (≥ 0). Both are done by SQLite, so that the first rows of a big index come fast.
         """
+        if sort not in QUERY_ORDER:
+            raise InputError(f"sort {sort!r} must be one of {', '.join(map(str, QUERY_ORDER))}")
         where: list[str] = []
         args: list[Any] = []
         if segment is not None:
@@ -474,30 +487,31 @@ class ChangeIndex:
             "SELECT f.*, v.center_x, v.center_y, v.center_z, v.image FROM flagged f "
             "JOIN views v ON v.view = f.view"
             + (" WHERE " + " AND ".join(where) if where else "")
-            + " ORDER BY f.segment_id, f.view"
+            + f" ORDER BY {QUERY_ORDER[sort]}"
         )
+        if limit is not None:
+            if isinstance(limit, bool) or not isinstance(limit, int) or limit < 0:
+                raise InputError(f"limit {limit!r} must be a whole number >= 0")
+            sql += f" LIMIT {int(limit)}"
         rows = self.conn.execute(sql, args).fetchall()
-        return [self._row(r) for r in rows]
+        regions = self._regions_of([r["id"] for r in rows])
+        return [self._row(r, regions.get(r["id"], ())) for r in rows]
 
-    def _row(self, r: sqlite3.Row) -> FlaggedRow:
-        def xyz(g: sqlite3.Row, a: str, b: str, c: str) -> tuple[float, float, float] | None:
-            return None if g[a] is None else (g[a], g[b], g[c])
-
-        regions = tuple(
-            RegionRecord(
-                g["label"],
-                g["pixels"],
-                g["score"],
-                xyz(g, "x", "y", "z"),
-                xyz(g, "min_x", "min_y", "min_z"),
-                xyz(g, "max_x", "max_y", "max_z"),
-                g["dominant_class"],
-                g["foot_class"],
-            )
+    def _regions_of(self, ids: Sequence[int]) -> dict[int, tuple[RegionRecord, ...]]:
+        """The regions of flagged rows ``ids``, by row id, each in label order: one query per
+        500 rows (one per row was most of a big query's time)."""
+        out: dict[int, list[RegionRecord]] = {}
+        for k in range(0, len(ids), 500):
+            chunk = ids[k : k + 500]
             for g in self.conn.execute(
-                "SELECT * FROM regions WHERE flagged_id = ? ORDER BY label", (r["id"],)
-            )
-        )
+                f"SELECT * FROM regions WHERE flagged_id IN ({','.join('?' * len(chunk))})"
+                " ORDER BY flagged_id, label",
+                chunk,
+            ):
+                out.setdefault(g["flagged_id"], []).append(_region(g))
+        return {k: tuple(v) for k, v in out.items()}
+
+    def _row(self, r: sqlite3.Row, regions: tuple[RegionRecord, ...]) -> FlaggedRow:
         center = None if r["center_x"] is None else (r["center_x"], r["center_y"], r["center_z"])
         return FlaggedRow(
             r["view"],
@@ -563,6 +577,24 @@ class ChangeIndex:
             "regions": one("SELECT count(*) FROM regions").fetchone()[0],
             "segments": one("SELECT count(*) FROM segments").fetchone()[0],
         }
+
+
+def _region(g: sqlite3.Row) -> RegionRecord:
+    """A ``regions`` row as a record (x/y/z triples None where not located)."""
+
+    def xyz(a: str, b: str, c: str) -> tuple[float, float, float] | None:
+        return None if g[a] is None else (g[a], g[b], g[c])
+
+    return RegionRecord(
+        g["label"],
+        g["pixels"],
+        g["score"],
+        xyz("x", "y", "z"),
+        xyz("min_x", "min_y", "min_z"),
+        xyz("max_x", "max_y", "max_z"),
+        g["dominant_class"],
+        g["foot_class"],
+    )
 
 
 class _Transaction:

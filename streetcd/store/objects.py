@@ -60,6 +60,11 @@ SEE_RANGE_M = 30.0  # a view "sees the spot" when the spot is in its image and t
 IN_FRONT_M = 1.0  # lines of sight meeting this far before the old surface: an added object
 MIN_REGION_FRACTION = 0.002  # run.min_region_fraction's default
 MAX_RAY_MISS_M = 1.0  # lines of sight that miss each other by more do not locate a change
+# Lines of sight that miss each other by more than this (RMS) are not one thing standing in
+# one place: regions of several things chained by their links (a car parked in front of a new
+# bench, a passer-by beside it), which _agreeing splits. Twice MAX_RAY_MISS_M: a car seen in
+# parts by two views, or a region cut by the image border, still meets within it.
+MAX_AGREE_MISS_M = 2.0
 
 # Where the old cloud says the change is on the road, or was a parked car, a vehicle or a
 # pedestrian came or went (issue 17): not a change of the street.
@@ -172,7 +177,8 @@ def _rebuild_segment(
             pixels=np.array([g.pixels for g in free]),
         )
         for k in range(int(labels.max()) + 1):
-            groups.append((None, [g for g, lab in zip(free, labels, strict=True) if lab == k]))
+            linked = [g for g, lab in zip(free, labels, strict=True) if lab == k]
+            groups.extend((None, part) for part in _agreeing(linked))
     views = _views_near(conn, segment)
     n = 0
     for object_id, members in groups:
@@ -180,6 +186,35 @@ def _rebuild_segment(
             continue
         n += _write_object(conn, segment, object_id, members, views, ground_class)
     return n
+
+
+def _agreeing(members: list[_Region]) -> list[list[_Region]]:
+    """``members`` split where their views do not agree on one place: when the lines of
+    sight of a group's views miss each other by more than MAX_AGREE_MISS_M (RMS) and the
+    regions are not on one spot of the old surface, links have chained several things (a car
+    parked since the scan whose region of one view touches a new pole's). The view whose
+    regions' leaving brings the others' lines of sight closest together leaves, one at a
+    time, until they meet within MAX_RAY_MISS_M or two views are left; each view that left is
+    a group of its own (it is then judged alone: often seen by one view only)."""
+    meet = _meeting(members)
+    if meet is None or not meet.miss > MAX_AGREE_MISS_M or _on_one_spot(members):
+        return [members]
+    keep, parts = list(members), []
+    while True:
+        views = sorted({g.view for g in keep if g.camera is not None})
+        meet = _meeting(keep)
+        if meet is None or len(views) <= 2 or meet.miss <= MAX_RAY_MISS_M:
+            break
+        gone = min(views, key=lambda v: (_miss_without(keep, v), v))
+        parts.append([g for g in keep if g.view == gone])
+        keep = [g for g in keep if g.view != gone]
+    return [keep, *parts]
+
+
+def _miss_without(members: Sequence[_Region], view: str) -> float:
+    """How far the lines of sight of ``members`` other than ``view``'s miss each other."""
+    meet = _meeting([g for g in members if g.view != view])
+    return math.inf if meet is None or not math.isfinite(meet.miss) else meet.miss
 
 
 def _claim(review: sqlite3.Row, regions: list[_Region]) -> tuple[list[_Region], list[_Region]]:
@@ -327,7 +362,8 @@ def _write_object(
     lo = np.min([g.lo for g in members], axis=0)
     hi = np.max([g.hi for g in members], axis=0)
     cls = _majority([g.cls for g in members], w)
-    kind, where = _kind(members, cls)
+    meet = _meeting(members)
+    kind, where = _kind(members, cls, meet)
     if kind == "added" and where is not None:
         centroid = where
         lo, hi = np.minimum(lo, where), np.maximum(hi, where)
@@ -353,6 +389,8 @@ def _write_object(
         under = ground_class(float(centroid[0]), float(centroid[1]))
         if under in ROAD_CLASSES:
             transient = "stands on the road (the old cloud's class there): a vehicle or a passer-by"
+    if transient is None and kind == "unknown":
+        transient = _not_one_place(members, meet, ground_class)
     cur = conn.execute(
         "INSERT INTO objects (object_id, segment_id, kind, class, confidence, x, y, z, min_x,"
         " min_y, min_z, max_x, max_y, max_z, pixels, n_views, n_without, first_seen, last_seen,"
@@ -404,15 +442,40 @@ def _majority(values: Sequence[int], weights: np.ndarray) -> int:
     return min(totals, key=lambda v: (-totals[v], v))
 
 
-def _kind(members: Sequence[_Region], cls: int) -> tuple[str, np.ndarray | None]:
+@dataclass(frozen=True)
+class _Meeting:
+    """Where the lines of sight of an object's views (camera → region centroid) meet:
+    ``where`` (3,) metres, ``miss`` their RMS distance to it (metres; inf: parallel),
+    ``in_front`` the median distance from it to the old surface along them (metres)."""
+
+    where: np.ndarray
+    miss: float
+    in_front: float
+
+
+def _meeting(members: Sequence[_Region]) -> _Meeting | None:
+    """The meeting of the members' lines of sight; None with fewer than two views with a
+    camera (no depth from one view)."""
+    with_cam = [g for g in members if g.camera is not None]
+    if len({g.view for g in with_cam}) < 2:
+        return None
+    origins = np.array([g.camera for g in with_cam])
+    targets = np.array([g.centroid for g in with_cam])
+    where, miss = nearest_to_rays(origins, targets)
+    depth_surface = np.linalg.norm(targets - origins, axis=1)
+    depth_change = np.linalg.norm(where[None] - origins, axis=1)
+    return _Meeting(where, miss, float(np.median(depth_surface - depth_change)))
+
+
+def _kind(
+    members: Sequence[_Region], cls: int, meet: _Meeting | None
+) -> tuple[str, np.ndarray | None]:
     """``removed`` where every view puts the change on the same spot of the old surface and
     the old cloud has an object there (what was seen there is gone); ``added`` where the
     views' lines of sight through their regions meet well in front of the old surface, at a
     point every region covers (something new stands there; that place is returned); else
-    ``unknown``."""
-    with_cam = [g for g in members if g.camera is not None]
-    views = {g.view for g in with_cam}
-    if len(views) < 2:
+    ``unknown``. ``meet`` is :func:`_meeting` of the members."""
+    if meet is None:
         return "unknown", None
     if _on_one_spot(members):
         # Every view located it on the same spot of the old surface: what changed is that
@@ -420,21 +483,49 @@ def _kind(members: Sequence[_Region], cls: int) -> tuple[str, np.ndarray | None]
         if cls in (*OBJECT_CLASSES, *VEHICLE_CLASSES):
             return "removed", None
         return "unknown", None
-    origins = np.array([g.camera for g in with_cam])
-    targets = np.array([g.centroid for g in with_cam])
-    where, miss = nearest_to_rays(origins, targets)
-    if not math.isfinite(miss) or miss > MAX_RAY_MISS_M:
+    if not math.isfinite(meet.miss) or meet.miss > MAX_RAY_MISS_M:
         return "unknown", None
-    # How far before the old surface the lines of sight meet, along each.
-    depth_surface = np.linalg.norm(targets - origins, axis=1)
-    depth_change = np.linalg.norm(where[None] - origins, axis=1)
-    in_front = float(np.median(depth_surface - depth_change))
-    if in_front > IN_FRONT_M and all(
-        covers(where, cam, g.centroid, g.lo, g.hi, MERGE_MARGIN_M)
-        for g, cam in zip(with_cam, origins, strict=True)
+    if meet.in_front > IN_FRONT_M and all(
+        covers(meet.where, g.camera, g.centroid, g.lo, g.hi, MERGE_MARGIN_M)
+        for g in members
+        if g.camera is not None
     ):
-        return "added", where
+        return "added", meet.where
     return "unknown", None
+
+
+def _not_one_place(
+    members: Sequence[_Region], meet: _Meeting | None, ground_class: GroundClass | None
+) -> str | None:
+    """Why an object of kind ``unknown`` seen by two views or more is not a change of the
+    street, or None. Two tests of where its views' lines of sight meet (``meet``):
+
+    * they meet (within MAX_RAY_MISS_M) well before the old surface (IN_FRONT_M), over the
+      road: something stood on the road: a vehicle (a car parked since the scan, whose
+      region also holds a new board behind it is one such object: ``added`` needs every
+      region to cover the meeting point, and the board's does not);
+    * they miss each other by more than MAX_AGREE_MISS_M and the regions are not on one spot
+      of the old surface: the views do not agree on one thing in one place. :func:`_agreeing`
+      has split such chains down to two views; two views whose lines of sight still pass
+      that far apart do not locate one thing."""
+    if meet is None or _on_one_spot(members):
+        return None
+    if (
+        ground_class is not None
+        and meet.miss <= MAX_RAY_MISS_M
+        and meet.in_front > IN_FRONT_M
+        and ground_class(float(meet.where[0]), float(meet.where[1])) in ROAD_CLASSES
+    ):
+        return (
+            f"stands on the road (its views' lines of sight meet {meet.in_front:.1f} m before"
+            " the old surface, over the old cloud's road): a vehicle or a passer-by"
+        )
+    if math.isfinite(meet.miss) and meet.miss > MAX_AGREE_MISS_M:
+        return (
+            f"views disagree on where it is: their lines of sight miss each other by"
+            f" {meet.miss:.1f} m (RMS); not one thing standing in one place"
+        )
+    return None
 
 
 def _on_one_spot(members: Sequence[_Region]) -> bool:
@@ -496,6 +587,7 @@ def list_objects(
     sort: str = "confidence",
     since: str | None = None,
     min_confidence: float | None = None,
+    transients: bool = True,
 ) -> list[dict]:
     """The change objects of an index, as plain dicts (see ``docs/DECISIONS.md``, issue 17).
 
@@ -506,6 +598,7 @@ def list_objects(
     sort : ``confidence`` (highest first, then id) or ``id``.
     since : ISO date: objects last seen on or after that night.
     min_confidence : confidence ≥ this (a finite number in [0, 1]).
+    transients : False leaves out transients (before ``limit``).
     Opens the index read-only (never creates or writes a file).
     """
     where, args = _filters(status, segment, kind, bbox)
@@ -515,6 +608,8 @@ def list_objects(
     if min_confidence is not None:
         where.append("o.confidence >= ?")
         args.append(check_fraction("min_confidence", min_confidence))
+    if not transients:
+        where.append("o.transient IS NULL")
     if sort not in ("confidence", "id"):
         raise InputError(f"sort {sort!r} must be 'confidence' or 'id'")
     order = "o.confidence DESC, o.object_id" if sort == "confidence" else "o.object_id"
@@ -530,7 +625,8 @@ def list_objects(
         sql += f" LIMIT {int(limit)}"
     with _connect_ro(index_path) as idx:
         rows = idx.conn.execute(sql, args).fetchall()
-        return [_as_dict(idx.conn, r) for r in rows]
+        views = _views_of(idx.conn, [r["object_id"] for r in rows])
+        return [_as_dict(r, views.get(r["object_id"], [])) for r in rows]
 
 
 def _filters(
@@ -565,26 +661,38 @@ def _filters(
     return where, args
 
 
-def _as_dict(conn: sqlite3.Connection, r: sqlite3.Row) -> dict:
-    views = [
-        {
-            "view": v["view"],
-            "image": v["image"],
-            "overlay": v["overlay_path"],
-            "mask": v["mask_path"],
-            "image_path": v["image_path"],
-            "sees_change": bool(v["sees_change"]),
-            "labels": json.loads(v["labels"]),
-            "score": v["score"],
-        }
+def _views_of(conn: sqlite3.Connection, object_ids: Sequence[str]) -> dict[str, list[dict]]:
+    """The views of objects ``object_ids``, by object id, those that see the change first,
+    then by view: one query per 500 objects (one per object was most of a big listing's
+    time)."""
+    out: dict[str, list[dict]] = {}
+    for k in range(0, len(object_ids), 500):
+        chunk = object_ids[k : k + 500]
         for v in conn.execute(
-            "SELECT ov.view, ov.sees_change, ov.labels, w.image, w.image_path, f.overlay_path,"
-            " f.mask_path, f.score FROM object_views ov LEFT JOIN views w ON w.view = ov.view"
+            "SELECT ov.object_id, ov.view, ov.sees_change, ov.labels, w.image, w.image_path,"
+            " f.overlay_path, f.mask_path, f.score FROM object_views ov"
+            " LEFT JOIN views w ON w.view = ov.view"
             " LEFT JOIN flagged f ON f.view = ov.view AND ov.sees_change = 1"
-            " WHERE ov.object_id = ? ORDER BY ov.sees_change DESC, ov.view",
-            (r["object_id"],),
-        )
-    ]
+            f" WHERE ov.object_id IN ({','.join('?' * len(chunk))})"
+            " ORDER BY ov.object_id, ov.sees_change DESC, ov.view",
+            chunk,
+        ):
+            out.setdefault(v["object_id"], []).append(
+                {
+                    "view": v["view"],
+                    "image": v["image"],
+                    "overlay": v["overlay_path"],
+                    "mask": v["mask_path"],
+                    "image_path": v["image_path"],
+                    "sees_change": bool(v["sees_change"]),
+                    "labels": json.loads(v["labels"]),
+                    "score": v["score"],
+                }
+            )
+    return out
+
+
+def _as_dict(r: sqlite3.Row, views: list[dict]) -> dict:
     review = None
     if r["r_status"] is not None:
         review = {"status": r["r_status"], "who": r["r_who"], "at": r["r_at"], "note": r["r_note"]}

@@ -1,0 +1,229 @@
+"""Scoring an index's change objects against a synthetic scene (`streetcd evaluate --scene DIR
+--index INDEX`, issue 17 item 5).
+
+The street of tests/test_objects.py: cameras every 3 m looking at a façade. A real index is
+written through the store (masks on disk, regions, change objects rebuilt from them) and a
+scene folder beside it holds the truth: a removed pole (change 1), an added box (change 2) and
+a removed bin no view flagged (change 3); a parked car that came is a don't-care disturbance.
+Every view's regions are rectangles of 30 × 20 pixels, one above the other, so that OpenCV's
+labelling numbers them in the order the index lists them.
+"""
+
+import dataclasses
+import json
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from test_objects import BOX, PARAMS, POLE, _on_facade, _region
+from test_segments import E0, N0, street
+
+from streetcd import classes as C
+from streetcd.errors import CorruptFileError, InputError, MissingInputError
+from streetcd.eval.objects import MATCH_FRACTION, score_index
+from streetcd.run.segments import plan_segments
+from streetcd.store.index import ChangeIndex
+from streetcd.store.objects import list_objects, rebuild_objects, sees
+from streetcd.store.records import RegionRecord, ViewRecord, camera_json
+
+CAR = np.array([E0 + 10.0, N0 + 1.0 + 6.0, 101.5])  # a car parked since the scan
+H, W = 360, 640  # the cameras' image size (test_segments.INTR)
+ROWS = 30  # each region is ROWS × 20 pixels: above run.min_region_fraction of the image
+COLS = slice(10, 30)
+ON = {"pole": 16, "box": 8, "car": 20}  # of each region's 20 columns, those on its truth
+PX = ROWS * 20  # pixels per region
+BIN_PX = 3 * 10  # the unflagged bin's pixels in the first view's truth
+
+
+def _rows(label):
+    return slice(40 * (label - 1) + 1, 40 * (label - 1) + 1 + ROWS)
+
+
+def _scene_and_index(tmp_path, unlocated_in_first=True):
+    """Write the index (through the store) and the scene's truth; returns (scene, index,
+    how many views flagged each thing)."""
+    scene, run = tmp_path / "scene", tmp_path / "run"
+    (scene / "truth").mkdir(parents=True)
+    (run / "masks").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    views = street(16, step_m=3.0)
+    segments = plan_segments(views, PARAMS)
+    seg = {n: s.id for s in segments for n in s.views}
+    seen = {"pole": 0, "box": 0, "car": 0, "unlocated": 0, "no_change_views": 0}
+    records, manifest_views = [], []
+    for i, v in enumerate(views):
+        mask = np.zeros((H, W), np.uint8)
+        inst = np.zeros((H, W), np.uint16)
+        dontcare = np.zeros((H, W), np.uint8)
+        regions = []
+        for what, point in (("pole", POLE), ("box", BOX), ("car", CAR)):
+            if not sees(v, point):
+                continue
+            label = len(regions) + 1
+            if what == "pole":
+                g = _region(label, point, np.array([0.15, 0.15, 1.0]), C.POLE, rng)
+            else:
+                cls = C.CAR if what == "car" else C.BUILDING
+                g = _region(
+                    label, _on_facade(v.center, point), np.array([0.7, 0.05, 0.7]), cls, rng
+                )
+            regions.append(dataclasses.replace(g, pixels=PX))
+            mask[_rows(label), COLS] = 255
+            on = slice(COLS.start, COLS.start + ON[what])
+            if what == "car":
+                dontcare[_rows(label), on] = 255
+            else:
+                inst[_rows(label), on] = 1 if what == "pole" else 2
+            seen[what] += 1
+        if i == 0 and unlocated_in_first:  # a region with no old surface behind it
+            label = len(regions) + 1
+            regions.append(RegionRecord(label, PX, 0.5, None, None, None, 0))
+            mask[_rows(label), COLS] = 255
+            seen["unlocated"] += 1
+        if regions and not any(g.dominant_class != C.CAR and g.located for g in regions):
+            seen["no_change_views"] += 1
+        if i == 0:
+            inst[300:303, 500:510] = 3  # the bin, never flagged
+        ids, counts = np.unique(inst[inst > 0], return_counts=True)
+        changed = {str(k): int(n) for k, n in zip(ids, counts, strict=True)}
+        cv2.imwrite(str(scene / "truth" / f"{v.stem}.instances.png"), inst)
+        cv2.imwrite(str(scene / "truth" / f"{v.stem}.dontcare.png"), dontcare)
+        manifest_views.append(
+            {
+                "name": v.name,
+                "instances": f"truth/{v.stem}.instances.png",
+                "dontcare": f"truth/{v.stem}.dontcare.png",
+                "changed_pixels": changed,
+            }
+        )
+        mask_path = None
+        if regions:
+            mask_path = str(run / "masks" / f"{v.stem}.mask.png")
+            cv2.imwrite(mask_path, mask)
+        records.append(
+            ViewRecord(
+                f"{v.name}#aaa",
+                "h",
+                "p",
+                seg[v.name],
+                "done",
+                flagged=bool(regions),
+                score=0.8 if regions else 0.0,
+                regions=tuple(regions),
+                mask_path=mask_path,
+                overlay_path=mask_path,
+                center=tuple(float(x) for x in v.center),
+                captured_at="2026-11-01T02:00:00Z",
+                image=v.name,
+                camera=camera_json(v),
+            )
+        )
+    changes = [
+        {"instance_id": 1, "kind": "removed", "type": "pole"},
+        {"instance_id": 2, "kind": "added", "type": "box"},
+        {"instance_id": 3, "kind": "removed", "type": "bin"},
+    ]
+    (scene / "manifest.json").write_text(json.dumps({"views": manifest_views, "changes": changes}))
+    index = run / "change_index.sqlite"
+    with ChangeIndex(index) as idx:
+        idx.add_segments(segments)
+        idx.publish("r", records)
+        rebuild_objects(idx, [s.id for s in segments])
+    return scene, index, seen
+
+
+@pytest.fixture
+def scored(tmp_path):
+    scene, index, seen = _scene_and_index(tmp_path)
+    return score_index(scene, index), seen, index
+
+
+def test_flagged_pixels_are_split_by_where_they_fall(scored):
+    score, seen, _ = scored
+    assert seen["pole"] >= 3 and seen["box"] >= 3 and seen["car"] >= 3
+    on_change = seen["pole"] * ROWS * ON["pole"] + seen["box"] * ROWS * ON["box"]
+    dontcare = seen["car"] * PX
+    total = (seen["pole"] + seen["box"] + seen["car"] + seen["unlocated"]) * PX
+    assert (score.flagged.change, score.flagged.dontcare) == (on_change, dontcare)
+    assert score.flagged.total == total
+    # The car is a transient (the old cloud has a car there): its pixels are kept out; the
+    # unlocated region is in no object, so neither reported nor kept out.
+    assert score.reported.dontcare == 0
+    assert score.reported.total == (seen["pole"] + seen["box"]) * PX
+    assert score.reported.change == on_change
+    assert score.kept_out.total == score.kept_out.dontcare == dontcare
+    d = score.as_dict()
+    assert d["pixels"]["true_change_kept_pct"] == 100.0
+    assert d["pixels"]["flagged"]["on_dontcare_pct"] == round(100 * dontcare / total, 2)
+    assert d["pixels"]["reported"]["on_dontcare_pct"] == 0.0
+
+
+def test_objects_are_matched_to_the_manifests_changes(scored):
+    score, seen, index = scored
+    d = score.as_dict()
+    by_id = {c["instance_id"]: c for c in d["changes"]}
+    objects = {o["id"]: o for o in list_objects(index)}
+    (pole,) = by_id[1]["objects"]
+    (box,) = by_id[2]["objects"]
+    assert objects[pole]["kind"] == "removed" and objects[box]["kind"] == "added"
+    assert by_id[3]["objects"] == [] and by_id[3]["flagged_px"] == 0
+    assert by_id[3]["truth_px"] == BIN_PX
+    assert by_id[1]["truth_px"] == by_id[1]["flagged_px"] == seen["pole"] * ROWS * ON["pole"]
+    # the box: 8 of its region's 20 columns on it, 40 % >= MATCH_FRACTION: still a match
+    assert ON["box"] / 20 >= MATCH_FRACTION
+    assert (d["changes_found"], d["changes_total"], d["changes_one_object"]) == (2, 3, 2)
+    assert d["objects_reported"] == 2 and d["object_precision_pct"] == 100.0
+    assert d["object_recall_pct"] == round(100 * 2 / 3, 2)
+    car_ids = [o["id"] for o in d["objects"] if o["transient"] is not None]
+    assert car_ids and all(objects[i]["class"] == C.CAR for i in car_ids)
+    reasons = d["transient_reasons"]
+    assert sum(r["objects"] for r in reasons.values()) == len(car_ids)
+    assert sum(r["pixels"] for r in reasons.values()) == seen["car"] * PX
+    assert all(r["on_change"] == 0 for r in reasons.values())
+    assert d["flagged_views_without_change"] == seen["no_change_views"] > 0
+
+
+def test_a_mask_that_disagrees_with_the_index_is_named(tmp_path):
+    scene, index, _ = _scene_and_index(tmp_path)
+    with ChangeIndex(index, readonly=True) as idx:
+        path = idx.conn.execute("SELECT mask_path FROM flagged ORDER BY view").fetchone()[0]
+    mask = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    mask[H - 2 :, W - 2 :] = 255  # one more region than the index lists
+    cv2.imwrite(path, mask)
+    with pytest.raises(CorruptFileError, match="mask has .* regions, the index lists"):
+        score_index(scene, index)
+
+
+def test_an_index_of_another_scene_or_no_scene_is_refused(tmp_path):
+    scene, index, _ = _scene_and_index(tmp_path)
+    manifest = json.loads((scene / "manifest.json").read_text())
+    for v in manifest["views"]:
+        v["name"] = "other_" + v["name"]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="none of its .* flagged views is an image of"):
+        score_index(other, index)
+    with pytest.raises(MissingInputError, match="no manifest.json"):
+        score_index(tmp_path, index)
+    (other / "manifest.json").write_text("{not json")
+    with pytest.raises(CorruptFileError, match="manifest.json: not valid JSON"):
+        score_index(other, index)
+
+
+def test_cli_scores_an_index_and_writes_json(tmp_path):
+    from streetcd.cli.evaluate import evaluate
+
+    scene, index, _ = _scene_and_index(tmp_path)
+    out = tmp_path / "eval-index.json"
+    res = CliRunner().invoke(
+        evaluate, ["--scene", str(scene), "--index", str(index), "--json", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    assert data == score_index(scene, index).as_dict()
+    assert "Changes of the manifest" in res.output and "Transients kept out" in res.output
+    assert "the old cloud has a car there" in res.output
+    res = CliRunner().invoke(evaluate, ["--index", str(index)])
+    assert res.exit_code == 2 and "give --scene DIR" in res.output
