@@ -406,6 +406,12 @@ class SegmentParams:
         ``max_candidates`` nearest centres within this radius (ranked then by overlap).
     bbox_margin_m : the segment box is the trajectory's box grown by this much, so that it
         covers the street the cameras see and not just the line they drove along.
+    roads : a city's road network (GeoPackage, GeoJSON: street centre lines in the CRS of
+        the poses; ours): a view within ``roads_max_distance_m`` of a line belongs to the
+        piece of it ``length_m`` long at its chainage (:mod:`streetcd.geometry.chainage`),
+        id ``r<length>-<road id>-C<chainage>``; other views, and every view without a
+        network, to the grid cell. ``roads_id_field``: the attribute holding a street's id
+        (its FID when empty).
     """
 
     length_m: float = 100.0
@@ -413,9 +419,12 @@ class SegmentParams:
     neighbour_radius_m: float = 30.0
     max_candidates: int = 12
     bbox_margin_m: float = 15.0
+    roads: str = ""  # our addition: a road network's file; "": the grid alone
+    roads_id_field: str = ""
+    roads_max_distance_m: float = 30.0
 
     def __post_init__(self) -> None:
-        for name in ("length_m", "max_gap_m", "neighbour_radius_m"):
+        for name in ("length_m", "max_gap_m", "neighbour_radius_m", "roads_max_distance_m"):
             value = getattr(self, name)
             _check(math.isfinite(value) and value > 0, f"segments.{name}", value, "> 0")
         _check(self.max_candidates >= 1, "segments.max_candidates", self.max_candidates, ">= 1")
@@ -514,6 +523,9 @@ class Config:
             "min_region_fraction": r.min_region_fraction,
             "write_overlays": r.write_overlays,
         }
+        if not r.segments.roads:  # the grid alone: older hashes hold
+            for key in ("roads", "roads_id_field", "roads_max_distance_m"):
+                del blob["segments"][key]  # type: ignore[attr-defined]
         if r.region_score_power:  # 0 is the rule before it existed: older hashes hold
             blob["region_score_power"] = r.region_score_power
         return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:16]

@@ -158,3 +158,93 @@ def test_dense_acquisitions_rank_only_the_nearest_candidates():
     three = DetectParams(correlate=CorrelateParams(n_neighbours=3))
     with pytest.raises(InputError, match="max_candidates"):
         Config(three, RunParams(segments=SegmentParams(max_candidates=2)))
+
+
+# --- segments from a city's road network (run.segments.roads) -------------------------------
+
+
+def _linestring_wkb(xy):
+    import struct
+
+    return struct.pack("<BII", 1, 2, len(xy)) + np.asarray(xy, "<f8").tobytes()
+
+
+def _write_roads(path, lines, ids=None, driver=None):
+    """A road network file of (K, 2) lines, written with pyogrio as a city's GIS would."""
+    import pyogrio.raw
+
+    fields = [np.array(ids, dtype=object)] if ids is not None else []
+    pyogrio.raw.write(
+        str(path),
+        geometry=np.array([_linestring_wkb(xy) for xy in lines], dtype=object),
+        field_data=fields,
+        fields=["street"] if ids is not None else [],
+        geometry_type="LineString",
+        crs="EPSG:32631",
+        driver=driver,
+    )
+
+
+def test_project_on_polyline_gives_chainage_and_distance():
+    from streetcd.geometry.chainage import project_on_polyline
+
+    line = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 100.0]])
+    chainage, dist = project_on_polyline(np.array([[50, 3], [103, 40], [-5, 0]]), line)
+    np.testing.assert_allclose(chainage, [50.0, 140.0, 0.0])
+    np.testing.assert_allclose(dist, [3.0, 3.0, 5.0])
+
+
+@pytest.mark.parametrize("suffix", [".gpkg", ".geojson"])
+def test_road_pieces_keep_their_ids_whatever_images_arrive(tmp_path, suffix):
+    roads = tmp_path / f"roads{suffix}"
+    # the street's centre line runs 3 m beside the cameras, from 20 m before the first one
+    _write_roads(roads, [[(E0 - 20.0, N0 - 2.0), (E0 + 400.0, N0 - 2.0)]], ids=["Main St"])
+    params = SegmentParams(length_m=50.0, roads=str(roads), roads_id_field="street")
+    night1 = street(30)  # cameras every 4 m from E0 + 1
+    segs1 = plan_segments(night1, params)
+    ids1 = {v: s.id for s in segs1 for v in s.views}
+    # chainage of camera i: 21 + 4 i m; pieces of 50 m from the line's first vertex
+    assert ids1["a_000.jpg"] == "r50-Main_St-C0"
+    assert ids1["a_008.jpg"] == "r50-Main_St-C50"  # chainage 53 m
+    # another night: other names, one image missing, the cameras 1 m to the side
+    night2 = [v for i, v in enumerate(street(30, start=(E0 + 1.0, N0), prefix="b")) if i != 10]
+    ids2 = {v: s.id for s in plan_segments(night2, params) for v in s.views}
+    for name, seg in ids2.items():
+        assert seg == ids1[name.replace("b_", "a_")]
+
+
+def test_views_far_from_every_road_fall_back_to_the_grid(tmp_path):
+    roads = tmp_path / "roads.geojson"
+    _write_roads(roads, [[(E0, N0 + 500.0), (E0 + 400.0, N0 + 500.0)]])
+    params = SegmentParams(roads=str(roads))
+    segs = plan_segments(street(5), params)
+    assert [s.id for s in segs] == [plan_segments(street(5), SegmentParams())[0].id]
+    assert segs[0].id.startswith("g100-")
+
+
+def test_a_bad_road_network_names_the_file(tmp_path):
+    from streetcd.errors import MissingInputError
+
+    with pytest.raises(MissingInputError, match="roads.gpkg: road network not found"):
+        plan_segments(street(3), SegmentParams(roads=str(tmp_path / "roads.gpkg")))
+    junk = tmp_path / "junk.geojson"
+    junk.write_text('{"type": "FeatureCollection", "features": [')
+    with pytest.raises(InputError, match="junk.geojson: cannot read the road network"):
+        plan_segments(street(3), SegmentParams(roads=str(junk)))
+    roads = tmp_path / "roads.geojson"
+    _write_roads(roads, [[(E0, N0), (E0 + 9.0, N0)]], ids=["a"])
+    with pytest.raises(InputError, match="no field 'name'"):
+        plan_segments(street(3), SegmentParams(roads=str(roads), roads_id_field="name"))
+    poly = tmp_path / "poly.geojson"
+    poly.write_text(
+        '{"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, '
+        '"geometry": {"type": "Point", "coordinates": [0, 0]}}]}'
+    )
+    with pytest.raises(InputError, match="poly.geojson: feature 0: geometry type 1"):
+        plan_segments(street(3), SegmentParams(roads=str(poly)))
+
+
+def test_a_road_network_changes_the_results_hash():
+    base = Config()
+    roads = Config(run=RunParams(segments=SegmentParams(roads="roads.gpkg")))
+    assert roads.results_hash() != base.results_hash()

@@ -17,13 +17,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from streetcd.config import SegmentParams
 from streetcd.errors import InputError
+from streetcd.geometry.chainage import project_on_polyline
 from streetcd.geometry.neighbours import MIN_PARALLAX_PX, select_neighbours
+from streetcd.io.roads import RoadLine, read_roads
 from streetcd.types import View
 
 Order = Literal["auto", "time", "path"]
@@ -129,6 +132,46 @@ def cell_id(x: float, y: float, size_m: float) -> str:
     return f"g{_metres(size_m)}-E{_metres(i * size_m)}-N{_metres(j * size_m)}"
 
 
+def road_piece_id(road: str, chainage_m: float, size_m: float) -> str:
+    """The id of the piece of road ``road`` (its id in the network) ``size_m`` long holding
+    chainage ``chainage_m``: ``r<size>-<road>-C<start chainage>``, characters other than
+    letters, digits, ``.`` and ``_`` in the road's id written as ``_``."""
+    safe = "".join(ch if ch.isascii() and (ch.isalnum() or ch in "._") else "_" for ch in road)
+    start = math.floor(chainage_m / size_m) * size_m
+    return f"r{_metres(size_m)}-{safe}-C{_metres(start)}"
+
+
+def segment_keys(centers: np.ndarray, params: SegmentParams) -> list[str]:
+    """The segment id of each camera centre ((N, 3) or (N, 2) metres): the piece of the
+    nearest road within ``params.roads_max_distance_m`` when ``params.roads`` names a network
+    (ties to the line first in the file), else the grid cell (:func:`cell_id`)."""
+    xy = np.asarray(centers, np.float64)
+    xy = xy.reshape(len(xy), -1)[:, :2] if len(xy) else np.zeros((0, 2))
+    grid = [cell_id(float(x), float(y), params.length_m) for x, y in xy]
+    if not params.roads or len(xy) == 0:
+        return grid
+    best = np.full(len(xy), np.inf)
+    keys = list(grid)
+    for line in _roads(params.roads, params.roads_id_field):
+        chainage, dist = project_on_polyline(xy, line.xy)
+        for i in np.flatnonzero((dist < best) & (dist <= params.roads_max_distance_m)):
+            best[i] = dist[i]
+            keys[i] = road_piece_id(line.id, float(chainage[i]), params.length_m)
+    return keys
+
+
+_ROADS: dict[tuple[str, str, float], tuple[RoadLine, ...]] = {}
+
+
+def _roads(path: str, id_field: str) -> tuple[RoadLine, ...]:
+    """The network's lines, read once per file version (a flow plans many nights)."""
+    p = Path(path)
+    key = (str(p.resolve()), id_field, p.stat().st_mtime if p.exists() else 0.0)
+    if key not in _ROADS:
+        _ROADS[key] = read_roads(p, id_field)
+    return _ROADS[key]
+
+
 def segment_id(names: Sequence[str], centers: np.ndarray, size_m: float = 100.0) -> str:
     """The id of the segment of views at ``centers`` ((N, 3) metres, N ≥ 1): the grid cell of
     the first centre (every view of a segment lies in one cell). ``names`` is not used: an
@@ -178,7 +221,8 @@ def plan_segments(
     min_parallax_px: float = MIN_PARALLAX_PX,
 ) -> list[Segment]:
     """Order ``views`` along the trajectory, group them by grid cell (``params.length_m``
-    on a side, :func:`cell_id`) into segments, pair each view with its
+    on a side, :func:`cell_id`), or by piece of road where ``params.roads`` names a road
+    network (:func:`segment_keys`), into segments, pair each view with its
     ``n_neighbours`` best overlapping views (``detect.correlate.n_neighbours`` of the config).
 
     Views must have unique names; poses in the CRS (any frame works, ids and boxes are in
@@ -195,8 +239,8 @@ def plan_segments(
     # Views by grid cell, each cell's views in trajectory order; cells in the order the
     # trajectory first enters them.
     cells: dict[str, list[View]] = {}
-    for v in ordered:
-        cell = cell_id(float(v.center[0]), float(v.center[1]), params.length_m)
+    keys = segment_keys(np.array([v.center for v in ordered]).reshape(-1, 3), params)
+    for v, cell in zip(ordered, keys, strict=True):
         cells.setdefault(cell, []).append(v)
     segments = []
     for cid, seg_views in cells.items():
