@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_objects import BOX, PARAMS, POLE, _on_facade, _region
+from test_objects import BOX, PARAMS, POLE, _on_facade, _region, view_record
 from test_segments import E0, N0, street
 
 from streetcd import classes as C
@@ -25,7 +25,7 @@ from streetcd.eval.objects import MATCH_FRACTION, score_index
 from streetcd.run.segments import plan_segments
 from streetcd.store.index import ChangeIndex
 from streetcd.store.objects import list_objects, rebuild_objects, sees
-from streetcd.store.records import RegionRecord, ViewRecord, camera_json
+from streetcd.store.records import RegionRecord
 
 CAR = np.array([E0 + 10.0, N0 + 1.0 + 6.0, 101.5])  # a car parked since the scan
 H, W = 360, 640  # the cameras' image size (test_segments.INTR)
@@ -102,22 +102,7 @@ def _scene_and_index(tmp_path, unlocated_in_first=True):
             mask_path = str(run / "masks" / f"{v.stem}.mask.png")
             cv2.imwrite(mask_path, mask)
         records.append(
-            ViewRecord(
-                f"{v.name}#aaa",
-                "h",
-                "p",
-                seg[v.name],
-                "done",
-                flagged=bool(regions),
-                score=0.8 if regions else 0.0,
-                regions=tuple(regions),
-                mask_path=mask_path,
-                overlay_path=mask_path,
-                center=tuple(float(x) for x in v.center),
-                captured_at="2026-11-01T02:00:00Z",
-                image=v.name,
-                camera=camera_json(v),
-            )
+            view_record(v, "aaa", seg[v.name], regions, mask_path=mask_path, overlay_path=mask_path)
         )
     changes = [
         {"instance_id": 1, "kind": "removed", "type": "pole"},

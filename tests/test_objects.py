@@ -40,6 +40,29 @@ def _on_facade(camera, point):
     return camera + t * (point - camera)
 
 
+def view_record(
+    v, key, segment, regions, day="2026-11-01", mask_path=None, overlay_path=None
+) -> ViewRecord:
+    """A done view's record as a night publishes it: key ``<name>#<key>``, flagged (score
+    0.8) when it has ``regions``, captured at 02:00 on ``day``."""
+    return ViewRecord(
+        f"{v.name}#{key}",
+        "h",
+        "p",
+        segment,
+        "done",
+        flagged=bool(regions),
+        score=0.8 if regions else 0.0,
+        regions=tuple(regions),
+        mask_path=mask_path,
+        overlay_path=overlay_path,
+        center=tuple(float(x) for x in v.center),
+        captured_at=f"{day}T02:00:00Z",
+        image=v.name,
+        camera=camera_json(v),
+    )
+
+
 def _region(label, centroid, half, cls, rng):
     c = np.asarray(centroid) + rng.normal(0, 0.03, 3)
     return RegionRecord(label, 4000, 0.8, tuple(c), tuple(c - half), tuple(c + half), cls)
@@ -65,21 +88,14 @@ def night(index, suffix, changes, day, skip=(), run="r", ground=None):
                 g = _region(len(regions) + 1, hit, np.array([0.7, 0.05, 0.7]), C.BUILDING, rng)
             regions.append(g)
         records.append(
-            ViewRecord(
-                f"{v.name}#{suffix}",
-                "h",
-                "p",
+            view_record(
+                v,
+                suffix,
                 seg[v.name],
-                "done",
-                flagged=bool(regions),
-                score=0.8 if regions else 0.0,
-                regions=tuple(regions),
+                regions,
+                day,
                 mask_path=f"/out/masks/{v.stem}-{suffix}.png" if regions else None,
                 overlay_path=f"/out/overlays/{v.stem}-{suffix}.jpg" if regions else None,
-                center=tuple(float(x) for x in v.center),
-                captured_at=f"{day}T02:00:00Z",
-                image=v.name,
-                camera=camera_json(v),
             )
         )
     with ChangeIndex(index) as idx:
@@ -242,6 +258,20 @@ def test_rebuilding_is_deterministic(one_night):
     assert dump() == before
 
 
+def test_the_configs_region_rule_decides_which_objects_are_too_small(one_night):
+    # every region covers 4000 of 640 x 360 px (1.7 %): changes under the default 0.2 %
+    # rule, too small under a 2 % rule (run.min_region_fraction, passed by the night)
+    assert len(list_objects(one_night, transients=False)) == 2
+    with ChangeIndex(one_night) as idx:
+        rebuild_objects(idx, [s.segment_id for s in idx.segments()], min_region_fraction=0.02)
+    assert list_objects(one_night, transients=False) == []
+    kept_out = list_objects(one_night)
+    assert len(kept_out) == 2
+    assert all(
+        o["transient"].startswith("small: no view's region of it covers 2.0%") for o in kept_out
+    )
+
+
 def test_the_kernels_link_what_meets_and_only_that():
     # Two boxes that touch, one far away.
     c = np.array([[0, 0, 0], [0.9, 0, 0], [10, 0, 0]], dtype=float)
@@ -331,20 +361,12 @@ def publish(index, regions_of, ground=None):
     for v in views:
         regions = tuple(regions_of(v))
         records.append(
-            ViewRecord(
-                f"{v.name}#aaa",
-                "h",
-                "p",
+            view_record(
+                v,
+                "aaa",
                 seg[v.name],
-                "done",
-                flagged=bool(regions),
-                score=0.8 if regions else 0.0,
-                regions=regions,
+                regions,
                 mask_path=f"/out/masks/{v.stem}.png" if regions else None,
-                center=tuple(float(x) for x in v.center),
-                captured_at="2026-11-01T02:00:00Z",
-                image=v.name,
-                camera=camera_json(v),
             )
         )
     with ChangeIndex(index) as idx:

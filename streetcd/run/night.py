@@ -194,7 +194,7 @@ def _night(
 
                     for part in tracker.each("publish-segment", publish, segments):
                         summary.merge(part)
-            finish_run(plan, summary, config.detect.classes)
+            finish_run(plan, summary, config.detect.classes, config.run.min_region_fraction)
         summary.still_failing = still_failing(inputs, report, plan.run_id)
     return summary
 

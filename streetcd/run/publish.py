@@ -16,7 +16,7 @@ from streetcd.config import ClassMap
 from streetcd.run.plan import Batch, Plan
 from streetcd.run.progress import notify
 from streetcd.store.index import ChangeIndex
-from streetcd.store.objects import ground_classes, rebuild_objects
+from streetcd.store.objects import MIN_REGION_FRACTION, ground_classes, rebuild_objects
 from streetcd.store.records import ViewRecord
 
 log = logging.getLogger(__name__)
@@ -131,15 +131,21 @@ def publish_segment(plan: Plan, finished: Iterable[tuple[Any, Batch]]) -> RunSum
     return summary
 
 
-def finish_run(plan: Plan, summary: RunSummary, class_map: ClassMap | None = None) -> None:
+def finish_run(
+    plan: Plan,
+    summary: RunSummary,
+    class_map: ClassMap | None = None,
+    min_region_fraction: float = MIN_REGION_FRACTION,
+) -> None:
     """Merge the change objects of the plan's segments (:func:`rebuild_objects`, over
     every night the index holds), then close the run's row in the index with the counts
     of ``summary`` (from new_summary): status ``finished``, or ``incomplete`` when batches
-    were lost. ``class_map``: the config's ``detect.classes``, to read the store's codes."""
+    were lost. ``class_map``: the config's ``detect.classes``, to read the store's codes;
+    ``min_region_fraction``: the config's ``run.min_region_fraction`` (the flag rule)."""
     with ChangeIndex(plan.index) as idx:
         store = dict(plan.inputs).get("store")
         ground = ground_classes(store, class_map=class_map) if store else None
-        rebuild_objects(idx, [s.id for s in plan.segments], ground)
+        rebuild_objects(idx, [s.id for s in plan.segments], ground, min_region_fraction)
         idx.finish_run(
             plan.run_id,
             "incomplete" if summary.n_lost else "finished",

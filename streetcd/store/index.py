@@ -489,10 +489,7 @@ class ChangeIndex:
             + (" WHERE " + " AND ".join(where) if where else "")
             + f" ORDER BY {QUERY_ORDER[sort]}"
         )
-        if limit is not None:
-            if isinstance(limit, bool) or not isinstance(limit, int) or limit < 0:
-                raise InputError(f"limit {limit!r} must be a whole number >= 0")
-            sql += f" LIMIT {int(limit)}"
+        sql += limit_clause(limit)
         rows = self.conn.execute(sql, args).fetchall()
         regions = self._regions_of([r["id"] for r in rows])
         return [self._row(r, regions.get(r["id"], ())) for r in rows]
@@ -610,6 +607,16 @@ class _Transaction:
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
         self.conn.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+
+
+def limit_clause(limit: int | None) -> str:
+    """SQL's `` LIMIT n`` for a query's ``limit`` ("" for None); InputError for anything but a
+    whole number >= 0 (it is written into the SQL, so it must be one)."""
+    if limit is None:
+        return ""
+    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 0:
+        raise InputError(f"limit {limit!r} must be a whole number >= 0")
+    return f" LIMIT {int(limit)}"
 
 
 def _check_bbox(bbox: Sequence[float]) -> tuple[float, float, float, float]:

@@ -40,10 +40,10 @@ from typing import Any
 import numpy as np
 
 from streetcd import classes as C
-from streetcd.config import ClassMap
+from streetcd.config import ClassMap, RunParams
 from streetcd.errors import InputError, MissingInputError, StreetcdError
 from streetcd.geometry.merge import covers, link_regions, nearest_to_rays
-from streetcd.store.index import ChangeIndex, _check_bbox, parse_since, utc_now
+from streetcd.store.index import ChangeIndex, _check_bbox, limit_clause, parse_since, utc_now
 from streetcd.store.records import camera_from_json
 
 log = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ MAX_RAY_GAP_M = 1.0  # or when two views' lines of sight through them pass this 
 REVIEW_TOLERANCE_M = 0.5  # a later region inside a reviewed box (grown by this) joins it
 SEE_RANGE_M = 30.0  # a view "sees the spot" when the spot is in its image and this close
 IN_FRONT_M = 1.0  # lines of sight meeting this far before the old surface: an added object
-MIN_REGION_FRACTION = 0.002  # run.min_region_fraction's default
+MIN_REGION_FRACTION = RunParams().min_region_fraction  # without a config: its default
 MAX_RAY_MISS_M = 1.0  # lines of sight that miss each other by more do not locate a change
 # Lines of sight that miss each other by more than this (RMS) are not one thing standing in
 # one place: regions of several things chained by their links (a car parked in front of a new
@@ -97,19 +97,24 @@ GroundClass = Callable[[float, float], "int | None"]
 
 
 def rebuild_objects(
-    idx: ChangeIndex, segment_ids: Iterable[str], ground_class: GroundClass | None = None
+    idx: ChangeIndex,
+    segment_ids: Iterable[str],
+    ground_class: GroundClass | None = None,
+    min_region_fraction: float = MIN_REGION_FRACTION,
 ) -> int:
     """Rewrite the change objects of ``segment_ids`` from the index's regions, one
     transaction per segment. Returns how many objects they now hold.
 
     ground_class : (x, y) in the CRS → the old cloud's class on the ground there (None:
     no points), e.g. :func:`ground_classes`; with it, an added object standing on the road
-    is a transient. Without it that test is skipped.
+    is a transient. Without it that test is skipped. min_region_fraction : the config's
+    ``run.min_region_fraction``: an object none of whose regions covers that share of its
+    image is a transient ("small"), as a view with no such region is not flagged.
     """
     total = 0
     for seg in sorted(set(segment_ids)):
         with idx.transaction():
-            total += _rebuild_segment(idx.conn, seg, ground_class)
+            total += _rebuild_segment(idx.conn, seg, ground_class, min_region_fraction)
     return total
 
 
@@ -150,7 +155,10 @@ def ground_classes(
 
 
 def _rebuild_segment(
-    conn: sqlite3.Connection, segment: str, ground_class: GroundClass | None = None
+    conn: sqlite3.Connection,
+    segment: str,
+    ground_class: GroundClass | None = None,
+    min_region_fraction: float = MIN_REGION_FRACTION,
 ) -> int:
     regions = _load_regions(conn, segment)
     _drop_objects(conn, segment)
@@ -184,7 +192,9 @@ def _rebuild_segment(
     for object_id, members in groups:
         if not members and object_id is None:
             continue
-        n += _write_object(conn, segment, object_id, members, views, ground_class)
+        n += _write_object(
+            conn, segment, object_id, members, views, ground_class, min_region_fraction
+        )
     return n
 
 
@@ -348,6 +358,7 @@ def _write_object(
     members: Sequence[_Region],
     views: Sequence[_ViewGeom],
     ground_class: GroundClass | None,
+    min_region_fraction: float = MIN_REGION_FRACTION,
 ) -> int:
     """Insert one object (and its views); 0 when a reviewed object has no region left."""
     if not members:
@@ -380,9 +391,9 @@ def _write_object(
         transient = (
             "stands on the road (the old cloud's class at its foot): a vehicle or a passer-by"
         )
-    if transient is None and not _large_enough(members):
+    if transient is None and not _large_enough(members, min_region_fraction):
         transient = (
-            f"small: no view's region of it covers {MIN_REGION_FRACTION:.1%} of its image"
+            f"small: no view's region of it covers {min_region_fraction:.1%} of its image"
             " (run.min_region_fraction)"
         )
     if transient is None and kind == "added" and ground_class is not None:
@@ -428,10 +439,10 @@ def _write_object(
     return 1
 
 
-def _large_enough(members: Sequence[_Region]) -> bool:
-    """Whether one region covers MIN_REGION_FRACTION of its view's image: the rule by which a
-    view is flagged at all (:func:`streetcd.run.worker.is_flagged`), held by each object."""
-    return any(g.image_px is None or g.pixels >= MIN_REGION_FRACTION * g.image_px for g in members)
+def _large_enough(members: Sequence[_Region], fraction: float) -> bool:
+    """Whether one region covers ``fraction`` of its view's image: the rule by which a view
+    is flagged at all (:func:`streetcd.run.worker.is_flagged`), held by each object."""
+    return any(g.image_px is None or g.pixels >= fraction * g.image_px for g in members)
 
 
 def _majority(values: Sequence[int], weights: np.ndarray) -> int:
@@ -619,10 +630,7 @@ def list_objects(
         + (" WHERE " + " AND ".join(where) if where else "")
         + f" ORDER BY {order}"
     )
-    if limit is not None:
-        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 0:
-            raise InputError(f"limit {limit!r} must be a whole number >= 0")
-        sql += f" LIMIT {int(limit)}"
+    sql += limit_clause(limit)
     with _connect_ro(index_path) as idx:
         rows = idx.conn.execute(sql, args).fetchall()
         views = _views_of(idx.conn, [r["object_id"] for r in rows])
