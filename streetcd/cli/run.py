@@ -359,6 +359,9 @@ def demo(
     click.echo(
         f"\nmore: streetcd query --index {paths['index']} --format geojson -o changes.geojson"
     )
+    # the same code as `streetcd run` (0, or 3 when views failed), so a smoke test of a fresh
+    # install that runs the demo sees a failed view
+    raise click.exceptions.Exit(int(summary["exit_code"]))
 
 
 def prepare_demo(

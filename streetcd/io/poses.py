@@ -60,6 +60,7 @@ import re
 import stat
 import struct
 from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
@@ -267,6 +268,37 @@ def _crs_comment(path: Path) -> str | None:
 # --- COLMAP text ------------------------------------------------------------------------
 
 
+class _Rows:
+    """The views a pose file gives and the rows it refuses.
+
+    Without ``bad_rows`` the first refused row stops the reading (its InputError goes up);
+    with a list, ``(name, error)`` is appended to it and the reading goes on.
+    """
+
+    def __init__(self, bad_rows: list[tuple[str, str]] | None) -> None:
+        self.views: list[View] = []
+        self.bad_rows = bad_rows
+        self.n_bad = 0
+
+    @contextmanager
+    def row(self, name: str) -> Iterator[None]:
+        """Read one row; ``name`` is its image name, or ``file:line`` where it has none."""
+        try:
+            yield
+        except InputError as exc:
+            if self.bad_rows is None:
+                raise
+            self.bad_rows.append((name, str(exc)))
+            self.n_bad += 1
+
+    def pose_set(self, crs: str | None, source: Path, empty: str) -> PoseSet:
+        """The views read; ``empty`` is the error of a file that held no row at all (a file
+        whose every row was refused gives an empty set: its rows are in ``bad_rows``)."""
+        if not self.views and not self.n_bad:
+            raise InputError(empty)
+        return PoseSet(tuple(self.views), crs, source)
+
+
 def read_colmap_cameras_text(path: Path) -> dict[int, Intrinsics]:
     cameras: dict[int, Intrinsics] = {}
     for number, line in _data_lines(path):
@@ -316,8 +348,7 @@ def read_colmap_text(
     if not cameras_txt.exists():
         raise MissingInputError(f"COLMAP cameras.txt not found beside {images_txt}")
     cameras = read_colmap_cameras_text(cameras_txt)
-    views: list[View] = []
-    n_bad = 0
+    rows = _Rows(bad_rows)
     # images.txt alternates a pose line and a (possibly empty) 2D-points line; empty lines
     # are dropped, so recognise pose lines by their 10 fields ending in a name. Streamed:
     # with its 2D points the file of a city can be larger than memory.
@@ -325,16 +356,12 @@ def read_colmap_text(
         parts = line.split()
         if len(parts) != 10:
             continue  # a POINTS2D line
-        try:
-            views.append(_colmap_line(parts, images_txt, number, cameras, image_dir, len(views)))
-        except InputError as exc:
-            if bad_rows is None:
-                raise
-            bad_rows.append((parts[9], str(exc)))
-            n_bad += 1
-    if not views and not n_bad:
-        raise InputError(f"{images_txt}: no image poses found")
-    return PoseSet(tuple(views), _crs_comment(images_txt), images_txt)
+        with rows.row(parts[9]):
+            rows.views.append(
+                _colmap_line(parts, images_txt, number, cameras, image_dir, len(rows.views))
+            )
+    crs = _crs_comment(images_txt)
+    return rows.pose_set(crs, images_txt, f"{images_txt}: no image poses found")
 
 
 def _colmap_pose(q_t: list[float], where: str, name: str) -> Pose:
@@ -521,8 +548,7 @@ def read_colmap_binary(
         if not p.exists():
             raise MissingInputError(f"COLMAP binary model file not found: {p}")
     cameras = _read_cameras_bin(cameras_bin)
-    views: list[View] = []
-    n_bad = 0
+    rows = _Rows(bad_rows)
     with _open(images_bin) as fh:
         r = _BinaryReader(fh, images_bin)
         (count,) = r.unpack("<Q")
@@ -532,24 +558,16 @@ def read_colmap_binary(
             (n_points,) = r.unpack("<Q")
             r.skip(24 * n_points)  # (x, y, point3D id) per 2D point
             where = f"{images_bin}: image {k + 1}"
-            try:
+            with rows.row(name):
                 _checked_name(name, images_bin, f"image {k + 1}")
                 if cid not in cameras:
                     raise InputError(
                         f"{where}: field 'camera_id' = {cid} of {name!r} is not in {cameras_bin}"
                     )
                 pose = _colmap_pose(list(q_t), where, name)
-            except InputError as exc:
-                if bad_rows is None:
-                    raise
-                bad_rows.append((name, str(exc)))
-                n_bad += 1
-                continue
-            image = Path(image_dir) / name if image_dir is not None else None
-            views.append(View(name, cameras[cid], pose, image, float(len(views))))
-    if not views and not n_bad:
-        raise InputError(f"{images_bin}: no image poses found")
-    return PoseSet(tuple(views), None, images_bin)
+                image = Path(image_dir) / name if image_dir is not None else None
+                rows.views.append(View(name, cameras[cid], pose, image, float(len(rows.views))))
+    return rows.pose_set(None, images_bin, f"{images_bin}: no image poses found")
 
 
 def write_colmap_binary(folder: str | Path, views: Iterable[View]) -> Path:
@@ -635,8 +653,7 @@ def read_opk_csv(
     missing = [f for f in OPK_REQUIRED if f not in header]
     if missing:
         raise InputError(f"{path}:{body[0][0]}: header lacks field(s) {', '.join(missing)}")
-    views: list[View] = []
-    n_bad = 0
+    rows = _Rows(bad_rows)
     while True:
         try:
             values = next(reader)
@@ -648,16 +665,9 @@ def read_opk_csv(
         number = body[reader.line_num - 1][0]
         row = dict(zip(header, values, strict=False))
         name = (row.get("name") or "").strip()
-        try:
-            views.append(_opk_row(row, name, path, number, image_dir, len(views)))
-        except InputError as exc:
-            if bad_rows is None:
-                raise
-            bad_rows.append((name or f"{path.name}:{number}", str(exc)))
-            n_bad += 1
-    if not views and not n_bad:
-        raise InputError(f"{path}: no image rows")
-    return PoseSet(tuple(views), crs, path)
+        with rows.row(name or f"{path.name}:{number}"):
+            rows.views.append(_opk_row(row, name, path, number, image_dir, len(rows.views)))
+    return rows.pose_set(crs, path, f"{path}: no image rows")
 
 
 def _opk_row(
@@ -757,30 +767,20 @@ def read_pix4d_opk(
     if header is None or tuple(_header_tokens(header[1])) != PIX4D_HEADER:
         raise InputError(f"{path}: header is not 'imageName X Y Z Omega Phi Kappa'")
     intr = intrinsics or read_sidecar_camera(path)
-    views: list[View] = []
-    n_bad = 0
+    rows = _Rows(bad_rows)
     for number, line in lines:
         if line.lstrip().startswith("#"):
             continue
         parts = _split(line)
         name = parts[0] if parts else ""
-        try:
+        with rows.row(name or f"{path.name}:{number}"):
             if len(parts) != 7:
                 raise InputError(f"{path}:{number}: expected 7 fields, got {len(parts)}")
             values = dict(zip(PIX4D_HEADER[1:], parts[1:], strict=True))
-            views.append(
-                _opk_view(
-                    name, values, f"{path}:{number}", intr, image_dir, len(views), path, number
-                )
-            )
-        except InputError as exc:
-            if bad_rows is None:
-                raise
-            bad_rows.append((name or f"{path.name}:{number}", str(exc)))
-            n_bad += 1
-    if not views and not n_bad:
-        raise InputError(f"{path}: no image rows")
-    return PoseSet(tuple(views), None, path)
+            where = f"{path}:{number}"
+            n = len(rows.views)
+            rows.views.append(_opk_view(name, values, where, intr, image_dir, n, path, number))
+    return rows.pose_set(None, path, f"{path}: no image rows")
 
 
 def write_pix4d_opk(path: str | Path, views: Iterable[View]) -> Path:
@@ -825,8 +825,7 @@ def read_metashape_opk(
     """
     path = Path(path)
     crs, columns, header_line = None, None, 0
-    views: list[View] = []
-    n_bad = 0
+    rows = _Rows(bad_rows)
     intr = intrinsics
     for number, line in _text_lines(path):
         if not line.strip():
@@ -849,7 +848,7 @@ def read_metashape_opk(
         assert intr is not None
         parts = _split(line)
         name = parts[0] if parts else ""
-        try:
+        with rows.row(name or f"{path.name}:{number}"):
             if len(parts) != len(columns):
                 raise InputError(
                     f"{path}:{number}: expected {len(columns)} fields as in the header "
@@ -857,21 +856,14 @@ def read_metashape_opk(
                 )
             row = dict(zip(columns, parts, strict=True))
             view = _opk_view(
-                name, row, f"{path}:{number}", intr, image_dir, len(views), path, number
+                name, row, f"{path}:{number}", intr, image_dir, len(rows.views), path, number
             )
             if all(r in row for r in _METASHAPE_R):
                 _check_metashape_matrix(row, view, path, number)
-            views.append(view)
-        except InputError as exc:
-            if bad_rows is None:
-                raise
-            bad_rows.append((name or f"{path.name}:{number}", str(exc)))
-            n_bad += 1
+            rows.views.append(view)
     if columns is None:
         raise InputError(f"{path}: no '#Label X/East Y/North Z/Altitude Omega Phi Kappa' header")
-    if not views and not n_bad:
-        raise InputError(f"{path}: no image rows")
-    return PoseSet(tuple(views), crs, path)
+    return rows.pose_set(crs, path, f"{path}: no image rows")
 
 
 def _check_metashape_matrix(row: dict[str, str], view: View, path: Path, number: int) -> None:
@@ -1005,22 +997,15 @@ def read_opensfm(
         data = [data]
     if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
         raise InputError(f"{path}: not an OpenSfM reconstruction (a list of objects)")
-    views: list[View] = []
-    n_bad = 0
+    rows = _Rows(bad_rows)
     for k, rec in enumerate(data):
         cameras, shots = rec.get("cameras", {}), rec.get("shots", {})
         if not isinstance(cameras, dict) or not isinstance(shots, dict):
             raise InputError(f"{path}: reconstruction {k}: 'cameras' and 'shots' must be objects")
         for name in sorted(shots):
-            try:
-                views.append(_opensfm_shot(name, shots[name], cameras, path, k, image_dir))
-            except InputError as exc:
-                if bad_rows is None:
-                    raise
-                bad_rows.append((name, str(exc)))
-                n_bad += 1
-    if not views and not n_bad:
-        raise InputError(f"{path}: no shots")
+            with rows.row(name):
+                rows.views.append(_opensfm_shot(name, shots[name], cameras, path, k, image_dir))
+    views = rows.pose_set(None, path, f"{path}: no shots").views
     order = {id(v): i for i, v in enumerate(views)}
     return PoseSet(
         tuple(v if v.time is not None else _with_time(v, order[id(v)]) for v in views),
