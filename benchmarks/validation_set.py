@@ -12,6 +12,10 @@ generated once under ``out/validation/`` (the folder name holds every setting, s
 street is reused only for the same settings); ``streetcd evaluate --scene DIR --json
 DIR/eval.json --no-baselines`` then runs on each, with ``--config DIR/streetcd.yaml`` where
 the street was written with other class codes. Never tune on this set: it is for reporting.
+``--out out/dev --seeds 0,1`` makes and scores the same kinds of street for the DEVELOPMENT
+set instead; ``--config FILE`` lays a YAML of settings over each street's own (an ablation:
+the street's class map stays, the file's values win), and ``--tag NAME`` keeps each
+street's result under ``eval-NAME.json`` so that two settings can be compared.
 
 Printed: one markdown table (street, kappa, TP %, FP %, % pixels flagged, views flagged) and
 the mean and minimum kappa per kind. "views flagged" counts, of the views with a true change,
@@ -90,12 +94,15 @@ def generate(street: Street, root: Path) -> tuple[Path, tuple[float, float] | No
     return folder, (time.perf_counter() - start, _cpu_s() - cpu)
 
 
-def evaluate(folder: Path, views: int | None) -> dict[str, Any]:
-    """``streetcd evaluate`` on one street; its JSON."""
-    out = folder / "eval.json"
+def evaluate(
+    folder: Path, views: int | None, overlay: Path | None = None, tag: str = ""
+) -> dict[str, Any]:
+    """``streetcd evaluate`` on one street (with the street's own config, ``overlay``'s
+    settings laid over it); its JSON, kept as ``eval[-tag].json``."""
+    out = folder / (f"eval-{tag}.json" if tag else "eval.json")
     cmd = [str(STREETCD), "evaluate", "--scene", str(folder), "--json", str(out), "--no-baselines"]
-    config = folder / "streetcd.yaml"
-    if config.exists():
+    config = merged_config(folder, overlay, tag)
+    if config is not None:
         cmd += ["--config", str(config)]
     if views is not None:
         cmd += ["--views", str(views)]
@@ -104,6 +111,32 @@ def evaluate(folder: Path, views: int | None) -> dict[str, Any]:
         tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
         raise RuntimeError(f"{folder}: streetcd evaluate failed: {tail[0]}")
     return json.loads(out.read_text(encoding="utf-8"))
+
+
+def _deep_merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def merged_config(folder: Path, overlay: Path | None, tag: str) -> Path | None:
+    """The config file for one street: its own ``streetcd.yaml`` (a class map), with
+    ``overlay``'s values laid over it (written as ``streetcd-<tag>.yaml`` beside it); None
+    when there is neither."""
+    import yaml
+
+    own = folder / "streetcd.yaml"
+    if overlay is None:
+        return own if own.exists() else None
+    base = yaml.safe_load(own.read_text(encoding="utf-8")) if own.exists() else {}
+    top = yaml.safe_load(overlay.read_text(encoding="utf-8")) or {}
+    path = folder / f"streetcd-{tag or 'overlay'}.yaml"
+    path.write_text(yaml.safe_dump(_deep_merge(base or {}, top)), encoding="utf-8")
+    return path
 
 
 def view_flags(folder: Path, data: dict[str, Any]) -> tuple[str, str]:
@@ -152,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-unchanged", action="store_true", help="skip the unchanged streets")
     ap.add_argument("--generate-only", action="store_true", help="generate, do not evaluate")
     ap.add_argument("--out", type=Path, default=OUT, help=f"cache folder [{OUT}]")
+    ap.add_argument("--config", type=Path, help="YAML of settings laid over each street's own")
+    ap.add_argument("--tag", default="", help="keep results as eval-TAG.json (with --config)")
     args = ap.parse_args(argv)
 
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
@@ -183,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{street.name}: {folder} ({took})", file=sys.stderr, flush=True)
         if args.generate_only:
             continue
-        data = evaluate(folder, args.views)
+        data = evaluate(folder, args.views, args.config, args.tag)
         o = data["overall"]
         with_change, without = view_flags(folder, data)
         if street.changes and o["kappa"] is not None:

@@ -99,13 +99,32 @@ class SurfaceParams:
     # exceeds max_depth_jump_m (s of its densest vertex); 0 = the fixed jump alone. 10: a
     # dense MLS cloud (≤ 0.03 m) stays at 0.5 m
     spacing_jump_factor: float = 10.0
+    # our addition (issue 16): the edge widening leaves alone every triangle with a vertex
+    # nearer than this (metres, camera z): near the camera f·s/z reaches hundreds of px and
+    # bridges the ground a vehicle rig's own body hides; 0 = no floor
+    spacing_edge_min_depth_m: float = 0.0
+    # our addition (issue 16): points whose class is measured denser than this (metres)
+    # never widen edges: max_edge_px already suits a mobile-mapping cloud (≤ 0.03 m), where a
+    # longer edge only bridges a real gap; 0 = every class
+    spacing_edge_min_spacing_m: float = 0.0
+    # our addition (issue 16): roles whose points may widen edges (streetcd.classes codes;
+    # a triangle widens only if all its vertices do); () = every role
+    spacing_edge_classes: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         _check(self.max_depth_jump_m > 0, "max_depth_jump_m", self.max_depth_jump_m, "> 0")
         _check(self.max_edge_px > 0, "max_edge_px", self.max_edge_px, "> 0")
-        for name in ("spacing_edge_factor", "spacing_jump_factor"):
+        for name in (
+            "spacing_edge_factor",
+            "spacing_jump_factor",
+            "spacing_edge_min_depth_m",
+            "spacing_edge_min_spacing_m",
+        ):
             value = getattr(self, name)
             _check(math.isfinite(value) and value >= 0, name, value, ">= 0")
+        codes = tuple(int(c) for c in self.spacing_edge_classes)
+        _check(all(0 <= c <= 255 for c in codes), "spacing_edge_classes", codes, "codes 0-255")
+        object.__setattr__(self, "spacing_edge_classes", codes)
 
 
 @dataclass(frozen=True)
@@ -510,6 +529,13 @@ class Config:
             del detect["texture"]["max_global_shift_px"]  # off: older hashes hold
         if self.detect.classes.infer == "off":
             del detect["classes"]["infer"]  # the roles as before it existed: older hashes hold
+        for key, off in (
+            ("spacing_edge_min_depth_m", 0.0),
+            ("spacing_edge_min_spacing_m", 0.0),
+            ("spacing_edge_classes", []),
+        ):
+            if detect["surface"][key] == off:  # no limit on the widening: older hashes hold
+                del detect["surface"][key]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
             for key in [k for k in detect["appearance"] if k.startswith("intensity")]:
                 del detect["appearance"][key]

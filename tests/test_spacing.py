@@ -162,3 +162,37 @@ def test_a_sparse_wall_keeps_its_surface_with_the_spacing_filters():
     sparse, _ = surface_for_view(wall, codes, image, INTR, pose, params)
     assert paper.valid.mean() < 0.01
     assert sparse.valid.mean() > 0.7  # the wall fills 300 × 200 px of the 320 × 240 image
+
+
+def test_edge_widening_leaves_near_vertices_and_other_roles_alone():
+    # the 25 px lattice of the test above widened to 36 px (the whole square), with its top
+    # three rows 2 m from the camera: with a 3 m floor no triangle touching them widens
+    uv, depth = _lattice(25.0)
+    depth[:27] = 2.0
+    cls = np.full(81, 2, np.uint8)
+    s = (np.full(81, 0.5) * depth / 5.0, F)  # the same 30 px projected spacing everywhere
+    widened = replace(_paper(), spacing_edge_factor=1.2, max_depth_jump_m=10.0)
+    whole = view_surface(uv, depth, cls, (H, W), widened, spacing=s)
+    assert whole.valid.sum() == 201 * 201
+    floor = replace(widened, spacing_edge_min_depth_m=3.0)
+    near = view_surface(uv, depth, cls, (H, W), floor, spacing=s)
+    rows = np.flatnonzero(near.valid.any(axis=1))
+    assert rows.min() == 20 + 3 * 25 and rows.max() == 220  # rows 3-8 of the lattice only
+    assert near.valid.sum() == 201 * (5 * 25 + 1)
+    # roles: the lattice's left four columns are vegetation (5), the rest ground (2)
+    cls[np.tile(np.arange(9) < 4, 9)] = 5
+    ground = view_surface(
+        uv, depth, cls, (H, W), replace(widened, spacing_edge_classes=(2, 11)), spacing=s
+    )
+    cols = np.flatnonzero(ground.valid.any(axis=0))
+    assert cols.min() == 40 + 4 * 25 and cols.max() == 240
+    # a cloud measured as sparse as the floor (0.5 m ≥ 0.4 m) widens, a denser one does not
+    flat, half = np.full(81, 5.0), (np.full(81, 0.5), F)
+    at_floor = replace(widened, spacing_edge_min_spacing_m=0.4)
+    assert view_surface(uv, flat, cls, (H, W), at_floor, spacing=half).valid.sum() == 201 * 201
+    dense = replace(widened, spacing_edge_min_spacing_m=0.6)
+    assert not view_surface(uv, flat, cls, (H, W), dense, spacing=half).valid.any()
+    with pytest.raises(InputError, match="spacing_edge_min_depth_m"):
+        SurfaceParams(spacing_edge_min_depth_m=-1.0)
+    with pytest.raises(InputError, match="spacing_edge_classes"):
+        SurfaceParams(spacing_edge_classes=(2, 300))

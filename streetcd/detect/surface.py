@@ -206,7 +206,9 @@ def _emit(out, n, a, b, c, uv, depth, lim):  # pragma: no cover - compiled
     max_jump, max_edge2, jump_pt, edge_pt = lim
     if jump_pt.shape[0] > 0:  # the densest vertex decides: objects stay apart from sparse ground
         max_jump = max(max_jump, min(jump_pt[a], jump_pt[b], jump_pt[c]))
-    if edge_pt.shape[0] > 0:  # the sparsest vertex decides: its spacing must be bridged
+    if edge_pt.shape[0] > 0 and min(edge_pt[a], edge_pt[b], edge_pt[c]) > 0.0:
+        # the sparsest vertex decides (its spacing must be bridged), and only where every
+        # vertex may widen (0: a vertex near the camera or of a role kept to the fixed limit)
         e = max(edge_pt[a], edge_pt[b], edge_pt[c])
         max_edge2 = max(max_edge2, e * e)
     za, zb, zc = depth[a], depth[b], depth[c]
@@ -264,6 +266,7 @@ def _triangulate(
     params: SurfaceParams,
     cell_px: int,
     spacing: tuple[np.ndarray, float] | None = None,
+    classes: np.ndarray | None = None,
 ) -> np.ndarray:
     h, w = shape
     cells = _block_cells(uv, depth, h, w, cell_px)
@@ -280,17 +283,25 @@ def _triangulate(
     # the spacing the block z-buffer leaves (one point per w-cell), and the surface falls
     # apart. Never filter edges shorter than EDGE_FLOOR_CELLS grid cells.
     max_edge = max(scale_px(params.max_edge_px, image_width), EDGE_FLOOR_CELLS * cell_px)
-    jump_pt, edge_pt = _spacing_limits(depth, params, spacing)
+    jump_pt, edge_pt = _spacing_limits(depth, params, spacing, classes)
     lim = (float(params.max_depth_jump_m), float(max_edge * max_edge), jump_pt, edge_pt)
     return _unique_rows(_dual_triangles(labels, seeds, uv, depth, lim))
 
 
 def _spacing_limits(
-    depth: np.ndarray, params: SurfaceParams, spacing: tuple[np.ndarray, float] | None
+    depth: np.ndarray,
+    params: SurfaceParams,
+    spacing: tuple[np.ndarray, float] | None,
+    classes: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-point limits from the cloud's own spacing (:mod:`streetcd.detect.spacing`):
     ``spacing_jump_factor`` · s_i metres and ``spacing_edge_factor`` · f · s_i / z_i px, each
-    (N,) float64, or (0,) when its factor is 0 or ``spacing`` (s (N,) m, f px) is None."""
+    (N,) float64, or (0,) when its factor is 0 or ``spacing`` (s (N,) m, f px) is None.
+
+    The edge limit is 0 (no widening: a triangle with such a vertex keeps the fixed limit) at
+    points nearer than ``spacing_edge_min_depth_m``, at points whose spacing is below
+    ``spacing_edge_min_spacing_m`` and, when ``spacing_edge_classes`` is set, at points of
+    other roles (``classes`` (N,) uint8; None: every point may widen)."""
     none = np.empty(0, np.float64)
     if spacing is None:
         return none, none
@@ -300,6 +311,14 @@ def _spacing_limits(
         jump = np.ascontiguousarray(params.spacing_jump_factor * s, np.float64)
     if params.spacing_edge_factor > 0:
         edge = np.ascontiguousarray(params.spacing_edge_factor * focal_px * s / depth, np.float64)
+        # near the camera the widened limit grows as 1/z (hundreds of px at 3 m on a sparse
+        # LiDAR) and bridges the ground that the recording vehicle's own body hides
+        edge[depth < params.spacing_edge_min_depth_m] = 0.0
+        # a class as dense as mobile mapping keeps the configured limit (it suits it)
+        edge[s < params.spacing_edge_min_spacing_m] = 0.0
+        if params.spacing_edge_classes and classes is not None:
+            roles = np.asarray(params.spacing_edge_classes, dtype=np.uint8)
+            edge[~np.isin(classes, roles)] = 0.0
     return jump, edge
 
 
@@ -513,7 +532,7 @@ def view_surface(
     h, w = int(shape[0]), int(shape[1])
     if spacing is not None and np.shape(spacing[0]) != depth.shape:
         raise InputError(f"spacing must be {depth.shape}, got {np.shape(spacing[0])}")
-    tris = _triangulate(uv, depth, (h, w), w, params, int(cell_px), spacing)
+    tris = _triangulate(uv, depth, (h, w), w, params, int(cell_px), spacing, classes)
     return rasterise(uv, depth, classes, tris, (h, w), colours)
 
 
