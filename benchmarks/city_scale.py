@@ -178,25 +178,58 @@ class RssSampler(threading.Thread):
     """Samples, every ``every_s`` seconds, the RSS of ``streetcd run``'s Dask worker processes
     (its descendants started by ``multiprocessing``'s spawn) and of its flow process (the
     supervised ``streetcd.cli.run`` child: planning, the client, publishing); keeps each
-    one's peak, bytes; every 10 s it writes them to ``dump`` (JSON, for a run cut short)."""
+    one's peak, bytes; every 10 s it writes them to ``dump`` (JSON, for a run cut short).
+    Every ``trace_s`` seconds it adds a line to ``trace`` (a text file): the time, the views
+    the index holds (``index``, read-only), each worker's and the flow's RSS now, the load."""
 
-    def __init__(self, pid: int, dump: Path, every_s: float = 0.5) -> None:
+    def __init__(
+        self,
+        pid: int,
+        dump: Path,
+        every_s: float = 0.5,
+        trace: Path | None = None,
+        index: Path | None = None,
+        trace_s: float = 20.0,
+    ) -> None:
         super().__init__(daemon=True)
         self.pid, self.dump, self.every_s = pid, dump, every_s
+        self.trace, self.index, self.trace_s = trace, index, trace_s
         self.workers: dict[int, int] = {}
+        self.now: dict[int, int] = {}
         self.main = 0
+        self.main_now = 0
         self.stopped = threading.Event()
+
+    def _trace_line(self) -> None:
+        if self.trace is None:
+            return
+        views = "-"
+        if self.index is not None and self.index.exists():
+            try:
+                with closing(sqlite3.connect(f"file:{self.index}?mode=ro", uri=True)) as db:
+                    views = str(db.execute("SELECT count(*) FROM views").fetchone()[0])
+            except sqlite3.Error:
+                pass
+        mib = " ".join(f"{v / 2**20:.0f}" for _, v in sorted(self.now.items()))
+        with open(self.trace, "a") as f:
+            f.write(
+                f"{time.strftime('%H:%M:%S', time.gmtime())} views={views} "
+                f"workers_MiB={mib} flow_MiB={self.main_now / 2**20:.0f} load={load()}\n"
+            )
 
     def run(self) -> None:
         import psutil
 
         root = psutil.Process(self.pid)
-        last = time.monotonic()
+        last = last_trace = time.monotonic()
         while not self.stopped.wait(self.every_s):
             if time.monotonic() - last > 10:
                 last = time.monotonic()
                 peaks = {"main": self.main, "workers": self.workers, "load": load()}
                 self.dump.write_text(json.dumps(peaks) + "\n")
+            if time.monotonic() - last_trace > self.trace_s:
+                last_trace = time.monotonic()
+                self._trace_line()
             try:
                 self.main = max(self.main, root.memory_info().rss)
                 children = root.children(recursive=True)
@@ -206,9 +239,11 @@ class RssSampler(threading.Thread):
                 try:
                     cmd = " ".join(p.cmdline())
                     if "spawn_main" in cmd:
-                        self.workers[p.pid] = max(self.workers.get(p.pid, 0), p.memory_info().rss)
+                        self.now[p.pid] = p.memory_info().rss
+                        self.workers[p.pid] = max(self.workers.get(p.pid, 0), self.now[p.pid])
                     elif "streetcd.cli.run" in cmd:
-                        self.main = max(self.main, p.memory_info().rss)
+                        self.main_now = p.memory_info().rss
+                        self.main = max(self.main, self.main_now)
                 except psutil.Error:
                     pass
 
@@ -231,7 +266,7 @@ def night(paths: dict[str, str], out: Path, workers: int, batch_size: int) -> di
     t0 = time.perf_counter()
     with open(out / "run.log", "wb") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
-        sampler = RssSampler(proc.pid, out / "rss.json")
+        sampler = RssSampler(proc.pid, out / "rss.json", trace=out / "rss-trace.txt", index=index)
         sampler.start()
         code = proc.wait()
         sampler.stopped.set()
@@ -243,12 +278,19 @@ def night(paths: dict[str, str], out: Path, workers: int, batch_size: int) -> di
             "SELECT count(*), sum(detect_s), sum(total_s), sum(cpu_s) FROM views "
             "WHERE status = 'done'"
         ).fetchone()
+        # the run's end after its last view was published (1 s timestamps): the objects'
+        # rebuild and the run's close
+        (tail_s,) = db.execute(
+            "SELECT (julianday(r.finished_at) - julianday(max(v.processed_at))) * 86400"
+            " FROM runs r JOIN views v ON v.run_id = r.run_id"
+        ).fetchone()
     return {
         "command": " ".join(cmd),
         "exit_code": code,
         "process_s": process_s,
         "wall_s": summary["seconds"]["wall"],
         "plan_s": summary["seconds"]["plan"],
+        "tail_s": tail_s,
         "n_done": n,
         "n_failed": summary["views"]["failed"],
         "detect_s": detect_s or 0.0,
@@ -344,7 +386,7 @@ def query_times(index: Path, repeat: int = 5) -> list[dict[str, Any]]:
 def table(rows: list[dict[str, Any]]) -> str:
     mib = 1 / 2**20
     lines = [
-        f"{'views':>6} {'wall s':>7} {'process s':>9} {'plan s':>6} {'views/min':>9} "
+        f"{'views':>6} {'wall s':>7} {'process s':>9} {'plan s':>6} {'tail s':>6} {'views/min':>9} "
         f"{'Σ detect s':>10} {'overhead':>8} {'vs view':>7} {'cpu/core':>8} "
         f"{'worker peak RSS MiB':>19} {'flow MiB':>8} {'index MB':>8} {'failed':>6}  load"
     ]
@@ -353,6 +395,7 @@ def table(rows: list[dict[str, Any]]) -> str:
         rss = "/".join(f"{r * mib:.0f}" for r in s["worker_rss"]) or "-"
         lines.append(
             f"{s['n_done']:>6} {wall:>7.1f} {s['process_s']:>9.1f} {s['plan_s']:>6.1f} "
+            f"{s.get('tail_s') or 0:>6.0f} "
             f"{60 * s['n_done'] / wall:>9.1f} {s['detect_s']:>10.1f} "
             f"{100 * (wall / (s['detect_s'] / w) - 1):>7.1f}% "
             f"{100 * (wall / (s['view_s'] / w) - 1):>6.1f}% "

@@ -217,6 +217,7 @@ def test_infra_files_parse_and_agree():
 def test_demo_runs_the_whole_workflow_and_lists_what_changed(prefect_api_url, tmp_path):
     from click.testing import CliRunner
 
+    from streetcd.cli.query import query
     from streetcd.cli.run import demo
 
     out = CliRunner().invoke(
@@ -228,9 +229,13 @@ def test_demo_runs_the_whole_workflow_and_lists_what_changed(prefect_api_url, tm
     with ChangeIndex(index, create=False) as idx:
         counts = idx.counts()
         rows = idx.query()
+    listed = CliRunner().invoke(query, ["--index", str(index), "--format", "json"])
+    objects = json.loads(listed.output)["objects"]
     assert counts["views"] == 6 and counts["failed"] == 0
-    assert f"flagged views: {len(rows)}" in out.output
-    assert all(r.view in out.output for r in rows)
+    # the night's summary line (printed by the supervised child), then the change objects
+    assert f"6 detected, {len(rows)} flagged, 0 failed" in out.output
+    assert f"change objects: {len(objects)}" in out.output
+    assert all(o["id"] in out.output for o in objects)
 
 
 def test_cli_run_on_an_index_in_use_fails_at_once_naming_the_holder(

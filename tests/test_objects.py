@@ -351,11 +351,12 @@ def test_a_regions_foot_is_the_old_class_just_below_it():
     assert g.foot_class == 0
 
 
-def publish(index, regions_of, ground=None):
+def publish(index, regions_of, ground=None, params=PARAMS):
     """Publish one night of the street (2026-11-01) in which ``regions_of(view)`` gives each
-    view's regions (labels 1, 2, …), and rebuild the objects with ``ground``."""
+    view's regions (labels 1, 2, …), and rebuild the objects with ``ground``. Returns the
+    segments (``params``: how the street is cut)."""
     views = street(16, step_m=3.0)
-    segments = plan_segments(views, PARAMS)
+    segments = plan_segments(views, params)
     seg = {n: s.id for s in segments for n in s.views}
     records = []
     for v in views:
@@ -373,6 +374,7 @@ def publish(index, regions_of, ground=None):
         idx.add_segments(segments)
         idx.publish("r", records)
         rebuild_objects(idx, [s.id for s in segments], ground)
+    return segments
 
 
 CAR = np.array([E0 + 20.0, N0 + 1.0 + 6.0, 101.5])  # a car parked on the road since the scan
@@ -446,3 +448,100 @@ def test_a_region_chained_to_a_change_whose_line_of_sight_disagrees_is_split_off
     publish(tmp_path / "b.sqlite", lambda v: regions(v) if v.name != stray_view else [])
     (alone,) = list_objects(tmp_path / "b.sqlite")
     assert alone["id"] == box["id"] and alone["centroid"] == box["centroid"]
+
+
+def test_the_road_test_answers_what_a_scan_of_the_whole_tiles_answers(tmp_path, monkeypatch):
+    """ground_classes reads each tile once (x, y and classes only) and looks at a thin slice
+    of it: its answers are those of the old scan of every point of the tiles, at points
+    near tile edges and corners too, with the LRU evicting tiles between calls."""
+    from streetcd.io.las import write_las
+    from streetcd.store import objects
+    from streetcd.store.ingest import ingest
+    from streetcd.store.tiles import TileStore
+
+    origin = np.array([500_000.0, 5_200_000.0, 0.0])
+    rng = np.random.default_rng(3)
+    xyz = np.round(rng.uniform([0, 0, 0], [30.0, 20.0, 3.0], (20_000, 3)), 3)
+    cls = np.where(xyz[:, 1] < 8.0, 11, rng.integers(1, 7, len(xyz)))  # 11: road (LAS code)
+    write_las(tmp_path / "a" / "s.laz", xyz, cls, origin=origin, crs="EPSG:32633")
+    assert ingest(tmp_path / "a", tmp_path / "s.zarr", tile_size_m=10.0, workers=1).ok
+    store = TileStore.open(tmp_path / "s.zarr")
+    roles = np.asarray(objects.ClassMap().table(), np.uint8)
+
+    def scan(x, y, r=0.75):  # the former answer: every point of every tile in the box
+        codes = []
+        for t in store.tiles_in_bbox(x - r, y - r, x + r, y + r):
+            cloud = store.read_tile(t.id, cache=False)
+            near = np.sum((cloud.xyz[:, :2] + cloud.origin[:2] - (x, y)) ** 2, axis=1) <= r**2
+            codes.append(roles[cloud.classification[near]])
+        allc = np.concatenate(codes) if codes else np.zeros(0, np.uint8)
+        return int(np.bincount(allc).argmax()) if allc.size else None
+
+    monkeypatch.setattr(objects, "GROUND_CACHE_BYTES", 40_000)  # a tile or two at a time
+    monkeypatch.setattr(objects, "GROUND_CHUNK_BYTES", 0)
+    at = objects.ground_classes(tmp_path / "s.zarr")
+    points = [*rng.uniform([-1, -1], [31, 21], (150, 2)), (10.0, 10.0), (20.2, 9.9), (-5, 5)]
+    answers = [at(origin[0] + px, origin[1] + py) for px, py in points]
+    assert answers == [scan(origin[0] + px, origin[1] + py) for px, py in points]
+    assert C.ROAD in answers and None in answers and len(set(answers)) > 2
+    assert objects.ground_classes(tmp_path / "nothing.zarr")(origin[0], origin[1]) is None
+
+
+def _box_regions(v):
+    """The new box's region on the façade behind it, in each view that sees it."""
+    if not sees(v, BOX):
+        return []
+    hit = _on_facade(v.center, BOX)
+    half = np.array([0.3, 0.05, 0.3])
+    return [
+        RegionRecord(1, 4000, 0.8, tuple(hit), tuple(hit - half), tuple(hit + half), C.BUILDING)
+    ]
+
+
+def test_a_change_seen_from_two_segments_is_one_object_of_one_segment(tmp_path):
+    """Segments of 20 m: the box is seen by one view of the first cell and two of the next.
+    Each segment's regions are linked with its neighbour's, and the object belongs to the
+    segment of its first region; rebuilding either segment alone gives the same object."""
+    index = tmp_path / "a.sqlite"
+    segments = publish(index, _box_regions, params=SegmentParams(length_m=20.0))
+    seg_of = {n: s.id for s in segments for n in s.views}
+    assert len({seg_of[n] for n in seers(BOX)}) == 2
+    (box,) = list_objects(index)
+    assert box["kind"] == "added" and box["transient"] is None
+    assert sorted(v["image"] for v in box["views"] if v["sees_change"]) == seers(BOX)
+    assert box["segment"] == seg_of[seers(BOX)[0]]
+    np.testing.assert_allclose(box["centroid"], BOX, atol=0.3)
+    for seg in {seg_of[n] for n in seers(BOX)}:
+        with ChangeIndex(index) as idx:
+            rebuild_objects(idx, [seg])
+        assert list_objects(index) == [box]
+
+
+def test_a_speck_touching_another_views_large_region_is_not_linked_to_it():
+    c = np.array([[0, 0, 0], [0.5, 0, 0]], dtype=float)
+    lo, hi = c - 0.3, c + 0.3
+    views = np.array([0, 1])
+    assert link_regions(c, lo, hi, view_ids=views).tolist() == [0, 0]
+    like = np.array([4000, 801])  # within 5 times: one thing seen from two views
+    assert link_regions(c, lo, hi, view_ids=views, pixels=like).tolist() == [0, 0]
+    speck = np.array([4000, 799])
+    assert link_regions(c, lo, hi, view_ids=views, pixels=speck).tolist() == [0, 1]
+    # Two parts of one view's object (boxes overlapping by half) are not compared by size.
+    c[1, 0] = 0.1
+    lo, hi = c - 0.3, c + 0.3
+    assert link_regions(c, lo, hi, view_ids=np.array([0, 0]), pixels=speck).tolist() == [0, 0]
+
+
+def test_two_parts_of_one_view_wait_their_turn_among_the_links():
+    """View 0 has a large region (a board and a car's roof) and a flat one inside its box
+    (the car's lower half); view 1 has the board and the car's lower half apart. The links
+    between views are closer than the two parts of view 0, so they come first: the board's
+    regions are one object and the car's another. Joined first, the two parts of view 0
+    took the board's region of view 1 and left the car's alone."""
+    c = np.array([[0, 0, 1.0], [0, 0, 0.1], [0.3, 0, 1.0], [0, 0.5, 0.1]])
+    lo = np.array([[-1, -1, 0], [-0.8, -0.8, 0], [0, -0.3, 0.7], [-0.3, 0.2, 0]])
+    hi = np.array([[1, 1, 2], [0.8, 0.8, 0.2], [0.6, 0.3, 1.3], [0.3, 0.8, 0.2]])
+    labels = link_regions(c, lo, hi, view_ids=np.array([0, 0, 1, 1]))
+    assert labels.tolist() == [0, 1, 0, 1]
+    # Without the other view's regions the two parts are one object.
+    assert link_regions(c[:2], lo[:2], hi[:2], view_ids=np.array([0, 0])).tolist() == [0, 0]

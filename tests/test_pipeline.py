@@ -578,3 +578,43 @@ def test_a_view_at_another_resolution_gets_its_intrinsics_rescaled():
     assert half.pose is view.pose and fit_view(view, 1920, 1080) is view
     assert fits_camera(960, 540, 1920, 1080) and fits_camera(1366, 768, 2732, 1536)
     assert not fits_camera(960, 720, 1920, 1080)
+
+
+def test_objects_built_as_segments_end_are_those_of_a_rebuild_after_the_night(
+    small_city, clean_run, tmp_path
+):
+    """The run builds a segment's change objects as soon as the segments whose views can
+    change them are published (ObjectBuilder): the index holds what rebuilding every
+    segment after the night gives, and each segment waits for every segment with a done
+    view within reach of its box (regions lie within the detector's range of their camera,
+    and a segment links the regions within HALO_M of its own)."""
+    from streetcd.run.publish import _waiting_for
+    from streetcd.store.objects import ground_classes, influence_m, list_objects, rebuild_objects
+
+    _, index, _ = clean_run
+    copy = tmp_path / "copy.sqlite"
+    with ChangeIndex(index, create=False) as idx:
+        idx.conn.execute("VACUUM INTO ?", (str(copy),))
+        views = idx.conn.execute("SELECT segment_id, center_x, center_y FROM views").fetchall()
+    during = list_objects(index, sort="id")
+    with ChangeIndex(copy, create=False) as idx:
+        segments = [s.segment_id for s in idx.segments()]
+        rebuild_objects(idx, segments, ground_classes(small_city.store))
+    assert during and list_objects(copy, sort="id") == during
+    plan = planned(
+        small_city.images, small_city.poses, small_city.store, tmp_path / "i.sqlite", tmp_path
+    )
+    reach = influence_m(60.0)
+    assert reach == 2 * 60.0 + 20.0
+    waiting = _waiting_for(plan, reach + 1.0)
+    assert set(waiting) == {s.id for s in plan.segments}
+    with ChangeIndex(tmp_path / "i.sqlite", create=False) as idx:
+        boxes = {s.segment_id: s for s in idx.segments()}
+    for seg, deps in waiting.items():
+        (x0, y0, x1, y1), r = boxes[seg].bbox, reach
+        near = {
+            v["segment_id"]
+            for v in views
+            if x0 - r <= v["center_x"] <= x1 + r and y0 - r <= v["center_y"] <= y1 + r
+        }
+        assert seg in deps and near <= deps, seg

@@ -8,20 +8,31 @@ and names it in the legacy ``crs`` member instead (QGIS honours it too).
 The index is opened read-only (SQLite ``mode=ro``): a query never creates or changes a file,
 and works on a read-only one. Numbers are checked before anything is read (a NaN, an
 infinity, a score outside [0, 1] is a one-line error).
+
+JSON is written compact, one entry (object or view) a line, by orjson: the standard
+library's encoder with an indent took 3.7 of the 4.6 s that all 2,570 objects of a
+10,000-view index took. Only the command's own modules and SQLite load for a table or JSON
+(no numpy: it was half of a small query's time as a command); pyproj loads for GeoJSON in
+WGS 84 or a box in another CRS, pyogrio and numpy for a GeoPackage (docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from collections.abc import Sequence
+from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 import click
 
 from streetcd.cli import index_option
 from streetcd.errors import InputError, StreetcdError
+from streetcd.store.records import FlaggedRow, RegionRecord
+
+ROW_FIELDS = tuple(f.name for f in fields(FlaggedRow))
+REGION_FIELDS = tuple(f.name for f in fields(RegionRecord))
 
 
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
@@ -46,16 +57,42 @@ def _fraction(name: str, value: float | None) -> float | None:
     return value
 
 
-def rows_as_json(rows: Sequence) -> list[dict]:
+def rows_as_json(rows: Sequence[FlaggedRow]) -> list[dict]:
     """Query rows (flagged views) as plain dicts (coordinates in the index's CRS): ``id`` the
     view's lasting key, ``image`` its file name, ``segment``, ``score``, and every field of
-    :class:`~streetcd.store.records.FlaggedRow`."""
-    from dataclasses import asdict
+    :class:`~streetcd.store.records.FlaggedRow`, its regions as dicts of every field of
+    :class:`~streetcd.store.records.RegionRecord` (what ``dataclasses.asdict`` gives, which
+    copied every value and took most of the 8,280 views' 9 s)."""
+    out = []
+    for r in rows:
+        d: dict[str, Any] = {
+            "id": r.view,
+            "image": r.image,
+            "segment": r.segment_id,
+            "score": r.score,
+        }
+        d.update((name, getattr(r, name)) for name in ROW_FIELDS)
+        d["regions"] = [{name: getattr(g, name) for name in REGION_FIELDS} for g in r.regions]
+        out.append(d)
+    return out
 
-    return [
-        {"id": r.view, "image": r.image, "segment": r.segment_id, "score": r.score, **asdict(r)}
-        for r in rows
-    ]
+
+def json_document(head: dict, key: str, entries: Sequence[dict]) -> str:
+    """``{**head, key: entries}`` as compact JSON, each entry on a line of its own (so that
+    ``head`` and ``grep`` work on it, and a line is one entry). ``key`` must not be in ``head``."""
+    import orjson
+
+    opening = orjson.dumps(head)[:-1] + (b"," if head else b"") + orjson.dumps(key) + b":["
+    if not entries:
+        return (opening + b"]}").decode()
+    body = b",\n".join(orjson.dumps(e) for e in entries)
+    return (opening + b"\n" + body + b"\n]}").decode()
+
+
+def _geojson_text(collection: dict) -> str:
+    import orjson
+
+    return orjson.dumps(collection).decode()
 
 
 def rows_as_table(rows: Sequence, title: str = "flagged views") -> str:
@@ -74,8 +111,11 @@ def segments_table(rows: Sequence, segments: Sequence) -> str:
     """One line per segment that has flagged views: how many, the best score, its length."""
     header = f"{'segment':<28} {'flagged':>9} {'max score':>9} {'length m':>9}"
     lines = [f"flagged segments: {len(segments)}", header, "-" * len(header)]
+    by_segment: dict[str | None, list] = {}
+    for r in rows:
+        by_segment.setdefault(r.segment_id, []).append(r)
     for s in segments:
-        mine = [r for r in rows if r.segment_id == s.segment_id]
+        mine = by_segment.get(s.segment_id, [])
         lines.append(
             f"{s.segment_id:<28} {len(mine):>4} / {s.n_views:<2} "
             f"{max(r.score for r in mine):>9.3f} {s.length_m:>9.1f}"
@@ -127,18 +167,18 @@ def run_query(
     """
     from streetcd.store.geojson import objects_to_geojson, to_geojson
     from streetcd.store.index import ChangeIndex
-    from streetcd.store.objects import list_objects
+    from streetcd.store.object_list import list_objects
 
     _fraction("--min-score", min_score)
     # issue 18: --sort, --bbox-crs, csv / gpkg, GeoJSON only with a CRS (streetcd.report.export)
     from streetcd.report import export
 
     with ChangeIndex(index, readonly=True) as idx:
-        index_crs = idx.crs
+        crs = idx.crs
     if bbox is not None:
-        bbox = export.bbox_in_index_crs(bbox, bbox_crs, index_crs)
+        bbox = export.bbox_in_index_crs(bbox, bbox_crs, crs)
     if fmt == "geojson":
-        export.check_geojson_crs(index_crs, native_crs)
+        export.check_geojson_crs(crs, native_crs)
     if views and fmt in ("csv", "gpkg"):
         raise InputError(f"--format {fmt} lists change objects: leave out --views")
     if limit is not None and limit < 0:
@@ -163,15 +203,13 @@ def run_query(
         if sort is not None and not in_sql:
             objects = export.sort_objects(objects, sort)
             objects = objects[:limit] if limit is not None else objects
-        with ChangeIndex(index, readonly=True) as idx:
-            crs = idx.crs
         if fmt in ("csv", "gpkg"):
             return export.export_objects(objects, crs, fmt, index, output)
         if fmt == "table":
             return objects_table(objects)
         if fmt == "json":
-            return json.dumps({"crs": crs, "objects": objects}, indent=1)
-        return json.dumps(objects_to_geojson(objects, crs, wgs84=not native_crs))
+            return json_document({"crs": crs}, "objects", objects)
+        return _geojson_text(objects_to_geojson(objects, crs, wgs84=not native_crs))
     with ChangeIndex(index, readonly=True) as idx:
         rows = idx.query(
             segment=segment,
@@ -186,8 +224,8 @@ def run_query(
         if fmt == "table":
             return segments_table(rows, segments) + "\n\n" + rows_as_table(rows)
         if fmt == "json":
-            return json.dumps({"crs": idx.crs, "views": rows_as_json(rows)}, indent=1)
-        return json.dumps(to_geojson(rows, segments, idx.crs, wgs84=not native_crs))
+            return json_document({"crs": crs}, "views", rows_as_json(rows))
+        return _geojson_text(to_geojson(rows, segments, crs, wgs84=not native_crs))
 
 
 @click.command("query")

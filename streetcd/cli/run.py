@@ -250,7 +250,6 @@ def run(
     """Run the nightly flow once: check the inputs, ingest, plan segments, detect on Dask,
     publish. Exit codes: 0 a good night, 2 a whole-input error (nothing ran), 3 more views
     failed than --max-failed allows (summary: OUT/runs/latest.json)."""
-    from streetcd.run import supervise
 
     index = _default(index, out, "change_index.sqlite")
     limit = None if max_failed is None else parse_max_failed(max_failed)
@@ -273,10 +272,18 @@ def run(
         "max_failed": limit,
         "verbose": verbose,
     }
+    raise click.exceptions.Exit(supervised_night(spec))
+
+
+def supervised_night(spec: dict[str, Any]) -> int:
+    """:func:`night` in a supervised child whose process group (Prefect's temporary server,
+    the LocalCluster) dies with this process, however it ends; its exit code."""
+    from streetcd.run import supervise
+
     if not supervise.supported():  # Windows: no process groups; the night runs in here
-        raise click.exceptions.Exit(night(spec))
+        return night(spec)
     cmd = [sys.executable, "-m", "streetcd.cli.run", json.dumps(spec)]
-    raise click.exceptions.Exit(supervise.run_supervised(cmd, child_environment()))
+    return supervise.run_supervised(cmd, child_environment())
 
 
 def night(spec: dict[str, Any]) -> int:
@@ -340,6 +347,7 @@ def demo(
 ) -> None:
     """Generate a small synthetic city, ingest it, run the nightly flow, list what changed."""
     from streetcd.cli.query import run_query
+    from streetcd.run.summary import EXIT_OK, EXIT_VIEWS_FAILED
 
     try:
         w, h = (int(x) for x in size.lower().split("x"))
@@ -350,18 +358,30 @@ def demo(
         paths = prepare_demo(
             root, seed=seed, streets=streets, images_per_street=images_per_street, size=(w, h)
         )
-        summary = run_flow(verbose=verbose, workers=workers, **paths)
     except StreetcdError as exc:
         raise click.ClickException(str(exc)) from None
-    print_summary(summary, paths["index"])
-    click.echo("")
-    click.echo(run_query(paths["index"], fmt="table"))
-    click.echo(
-        f"\nmore: streetcd query --index {paths['index']} --format geojson -o changes.geojson"
-    )
-    # the same code as `streetcd run` (0, or 3 when views failed), so a smoke test of a fresh
+    spec = {
+        **paths,
+        "archive": None,
+        "scheduler": None,
+        "workers": workers,
+        "config_file": None,
+        "batch_size": None,
+        "retry_failed": False,
+        "max_failed": None,
+        "verbose": verbose,
+    }
+    # supervised as `streetcd run` is: a killed demo leaves no server or cluster behind
+    code = supervised_night(spec)
+    if code in (EXIT_OK, EXIT_VIEWS_FAILED):  # the night ran: list what it found
+        click.echo("")
+        click.echo(run_query(paths["index"], fmt="table"))
+        click.echo(
+            f"\nmore: streetcd query --index {paths['index']} --format geojson -o changes.geojson"
+        )
+    # the same code as `streetcd run` (3 when views failed), so a smoke test of a fresh
     # install that runs the demo sees a failed view
-    raise click.exceptions.Exit(int(summary["exit_code"]))
+    raise click.exceptions.Exit(code)
 
 
 def prepare_demo(

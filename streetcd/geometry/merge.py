@@ -43,14 +43,17 @@ def link_regions(
     sight), and never join two groups that both hold a region of the same view: the
     detector already told a view's regions apart (a car beside a new board are two
     regions in every view that sees both, and stay two objects however close they stand).
-    The exception: two regions of one view are one object split in two, and are joined
-    first, when their boxes overlap on every axis by at least half the smaller one's extent,
-    or when they touch and lie on the same kind of object of the old cloud (``object_ids``
-    (N,): the old object's class under each region, -1 for none; a board cut by a post).
+    The exception: two regions of one view are one object split in two when their boxes
+    overlap on every axis by at least half the smaller one's extent, or when they touch and
+    lie on the same kind of object of the old cloud (``object_ids`` (N,): the old object's
+    class under each region, -1 for none; a board cut by a post). The latter are joined
+    first; the former are a link like the others, at their centroid distance, that may join
+    two groups sharing that view only.
 
-    ``pixels`` (N,): with it, lines of sight link only regions of about the same apparent
-    size (within a factor :data:`MAX_SIZE_RATIO`): one object seen from two nearby views;
-    a speck of noise whose line of sight happens to cross a large region's is no evidence.
+    ``pixels`` (N,): with it, regions of two views link (either way) only when they are of
+    about the same apparent size (within a factor :data:`MAX_SIZE_RATIO`): one object seen
+    from two nearby views; a speck of noise whose line of sight crosses a large region's, or
+    whose box touches it, is no evidence.
 
     Returns (N,) int64 component labels 0, 1, … numbered in order of each component's
     first region, so the result depends only on the order of the input.
@@ -74,30 +77,46 @@ def link_regions(
             axis=2,
         )
         dist = np.linalg.norm(centroids[:, None, :] - centroids[None, :, :], axis=2)
+        same_view = view_ids[:, None] == view_ids[None, :]
         cost = np.where(touch & (dist <= max_link_m), dist, np.inf)
+        alike = np.ones((n, n), bool)
+        if pixels is not None:
+            # Two views of one thing from nearby cameras see it at about the same size, on
+            # the old surface as before it: a speck touching a large region of another view
+            # is no evidence (seed 0: a parked car's region chained to two specks).
+            px = np.maximum(np.asarray(pixels, dtype=np.float64), 1.0)
+            ratio = np.maximum(px[:, None] / px[None, :], px[None, :] / px[:, None])
+            alike = ratio <= MAX_SIZE_RATIO
+            cost = np.where(alike | same_view, cost, np.inf)
         if cameras is not None:
             gap = _rays_meet(centroids, lo, hi, cameras, view_ids, margin_m, max_ray_gap_m)
-            if pixels is not None:
-                px = np.maximum(np.asarray(pixels, dtype=np.float64), 1.0)
-                alike = np.maximum(px[:, None] / px[None, :], px[None, :] / px[:, None])
-                gap = np.where(alike <= MAX_SIZE_RATIO, gap, np.inf)
-            cost = np.minimum(cost, gap)
-        same_view = view_ids[:, None] == view_ids[None, :]
-        split = _overlap_half(lo, hi)
+            cost = np.minimum(cost, np.where(alike, gap, np.inf))
+        on_one = np.zeros((n, n), bool)
         if object_ids is not None:
             on_one = (object_ids[:, None] == object_ids[None, :]) & (object_ids[:, None] >= 0)
-            split |= on_one & touch
-        same = same_view & split
-        for i, j in zip(*np.nonzero(np.triu(same, k=1)), strict=True):
+            on_one &= touch & same_view
+        for i, j in zip(*np.nonzero(np.triu(on_one, k=1)), strict=True):
             a, b = find(int(i)), find(int(j))
             if a != b:
                 keep, gone = min(a, b), max(a, b)
                 parent[gone] = keep
                 members[keep] |= members.pop(gone)
+        # Boxes that overlap by half take their turn among the links, at their centroid
+        # distance: taken first, a car's lower half lying flat inside the box of a region
+        # holding the car's roof and a board behind it tied the board to the car before the
+        # board's other views could link to it (seed 0's added board, issue 17). Two parts
+        # of one old object (above) are surer and are joined first.
+        same = same_view & _overlap_half(lo, hi)
+        cost = np.where(same, dist, np.where(same_view, np.inf, cost))
         i_s, j_s = np.nonzero(np.triu(np.isfinite(cost), k=1))
         for k in np.lexsort((j_s, i_s, cost[i_s, j_s])):  # closest first, ties by index
             a, b = find(int(i_s[k])), find(int(j_s[k]))
-            if a == b or members[a] & members[b]:
+            # Groups that share a view are not joined, save through the two parts of that
+            # view's one object.
+            shared = members[a] & members[b]
+            if same[i_s[k], j_s[k]]:
+                shared = shared - {int(view_ids[i_s[k]])}
+            if a == b or shared:
                 continue
             keep, gone = min(a, b), max(a, b)
             parent[gone] = keep

@@ -48,6 +48,7 @@ from streetcd.run.cluster import dask_client_soon
 from streetcd.run.dispatch import Dispatcher
 from streetcd.run.plan import Plan, file_hash, image_name, lasting_key, plan_run
 from streetcd.run.publish import (
+    ObjectBuilder,
     RunSummary,
     finish_run,
     new_summary,
@@ -183,6 +184,13 @@ def _night(
             summary.notes = [*report.notes, *(f"warning: {w}" for w in report.warnings)]
             summary.plan_s = time.perf_counter() - t0
             segments = plan.segments_todo
+            # change objects built as segments end, not all after the last one
+            objects = ObjectBuilder(
+                plan,
+                config.detect.classes,
+                config.run.min_region_fraction,
+                config.detect.max_range_m,
+            )
             if segments:
                 dask = starting.result()
                 summary.wait_s = time.perf_counter() - t0 - summary.plan_s
@@ -190,11 +198,13 @@ def _night(
                     _log_cluster(log, dask)
 
                     def publish(segment_id: str) -> RunSummary:
-                        return _publish(plan, dispatcher, segment_id, log)
+                        part = _publish(plan, dispatcher, segment_id, log)
+                        objects.published(segment_id)
+                        return part
 
                     for part in tracker.each("publish-segment", publish, segments):
                         summary.merge(part)
-            finish_run(plan, summary, config.detect.classes, config.run.min_region_fraction)
+            finish_run(plan, summary, objects=objects)
         summary.still_failing = still_failing(inputs, report, plan.run_id)
     return summary
 

@@ -8,15 +8,23 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from streetcd.config import ClassMap
+import numpy as np
+
+from streetcd.config import ClassMap, DetectParams
 from streetcd.run.plan import Batch, Plan
 from streetcd.run.progress import notify
 from streetcd.store.index import ChangeIndex
-from streetcd.store.objects import MIN_REGION_FRACTION, ground_classes, rebuild_objects
+from streetcd.store.objects import (
+    MIN_REGION_FRACTION,
+    ground_classes,
+    influence_m,
+    rebuild_objects,
+)
 from streetcd.store.records import ViewRecord
 
 log = logging.getLogger(__name__)
@@ -131,21 +139,105 @@ def publish_segment(plan: Plan, finished: Iterable[tuple[Any, Batch]]) -> RunSum
     return summary
 
 
+class ObjectBuilder:
+    """Rebuilds each planned segment's change objects during the night, as soon as no view
+    still to come can change them, so that the run's end has only the last few left.
+
+    A segment's objects (:func:`rebuild_objects`) are made from its own flagged views'
+    regions, from the other segments' regions within ``HALO_M`` of those, and from the done
+    views that see their spots: all come from views whose camera centre lies within
+    :func:`~streetcd.store.objects.influence_m` of its box in the index (regions lie within
+    the detector's ``max_range_m`` of their camera). So segment S is ready once S and every
+    segment to do tonight with a camera centre (its polyline) within that reach of S's box
+    (1 m more, for rounding) have been published: rebuilding it then gives what the run's
+    end would, and :meth:`finish` rebuilds only the segments not built yet (those whose
+    publishing failed, the last ones). The rebuilds run one at a time, in the publishing
+    thread that made the segment ready. ``class_map``, ``min_region_fraction``: as
+    :func:`finish_run`'s; ``max_range_m``: the detector's (``detect.max_range_m``)."""
+
+    def __init__(
+        self,
+        plan: Plan,
+        class_map: ClassMap | None = None,
+        min_region_fraction: float = MIN_REGION_FRACTION,
+        max_range_m: float = DetectParams().max_range_m,
+    ) -> None:
+        self.plan, self.min_region_fraction = plan, min_region_fraction
+        store = dict(plan.inputs).get("store")
+        self.ground = ground_classes(store, class_map=class_map) if store else None
+        self.waiting = _waiting_for(plan, influence_m(max_range_m) + 1.0)
+        self.built: set[str] = set()
+        self.lock = threading.Lock()  # the book-keeping
+        self.building = threading.Lock()  # one rebuild at a time (the ground test's caches)
+
+    def published(self, segment_id: str) -> None:
+        """Segment ``segment_id``'s batches are all published: rebuild the segments that
+        were waiting only for it."""
+        with self.lock:
+            ready = []
+            for seg, deps in self.waiting.items():
+                deps.discard(segment_id)
+                if not deps and seg not in self.built:
+                    self.built.add(seg)
+                    ready.append(seg)
+        if ready:
+            self._rebuild(sorted(ready))
+
+    def finish(self) -> None:
+        """Rebuild the segments not built during the night."""
+        with self.lock:
+            rest = sorted(s.id for s in self.plan.segments if s.id not in self.built)
+            self.built.update(rest)
+        self._rebuild(rest)
+
+    def _rebuild(self, segment_ids: list[str]) -> None:
+        with self.building, ChangeIndex(self.plan.index) as idx:
+            rebuild_objects(idx, segment_ids, self.ground, self.min_region_fraction)
+
+
+def _waiting_for(plan: Plan, reach: float) -> dict[str, set[str]]:
+    """{segment id: the segments to do tonight whose publishing can change its objects}
+    (see :class:`ObjectBuilder`): those with a camera centre within ``reach`` metres (x/y) of
+    its box, for every segment of the plan."""
+    todo = plan.segments_todo
+    by_id = {s.id: s for s in plan.segments}
+    xy = [np.asarray(by_id[t].polyline, np.float64).reshape(-1, 2) for t in todo]
+    points = np.concatenate(xy) if xy else np.zeros((0, 2))
+    owner = np.repeat(np.arange(len(todo)), [len(p) for p in xy])
+    with ChangeIndex(plan.index) as idx:
+        boxes = {
+            r["segment_id"]: (r["min_x"], r["min_y"], r["max_x"], r["max_y"])
+            for r in idx.conn.execute("SELECT segment_id, min_x, min_y, max_x, max_y FROM segments")
+        }
+    out: dict[str, set[str]] = {}
+    for s in plan.segments:
+        box = boxes.get(s.id)
+        if box is None:  # not in the index: wait for everything
+            near = np.ones(len(points), bool)
+        else:
+            x, y = points[:, 0], points[:, 1]
+            near = (x >= box[0] - reach) & (x <= box[2] + reach)
+            near &= (y >= box[1] - reach) & (y <= box[3] + reach)
+        out[s.id] = {todo[k] for k in np.unique(owner[near]).tolist()} | ({s.id} & set(todo))
+    return out
+
+
 def finish_run(
     plan: Plan,
     summary: RunSummary,
     class_map: ClassMap | None = None,
     min_region_fraction: float = MIN_REGION_FRACTION,
+    objects: ObjectBuilder | None = None,
 ) -> None:
     """Merge the change objects of the plan's segments (:func:`rebuild_objects`, over
     every night the index holds), then close the run's row in the index with the counts
     of ``summary`` (from new_summary): status ``finished``, or ``incomplete`` when batches
     were lost. ``class_map``: the config's ``detect.classes``, to read the store's codes;
-    ``min_region_fraction``: the config's ``run.min_region_fraction`` (the flag rule)."""
+    ``min_region_fraction``: the config's ``run.min_region_fraction`` (the flag rule).
+    ``objects``: the night's :class:`ObjectBuilder`, which has built some segments already
+    (then ``class_map`` and ``min_region_fraction`` are its own)."""
+    (objects or ObjectBuilder(plan, class_map, min_region_fraction)).finish()
     with ChangeIndex(plan.index) as idx:
-        store = dict(plan.inputs).get("store")
-        ground = ground_classes(store, class_map=class_map) if store else None
-        rebuild_objects(idx, [s.id for s in plan.segments], ground, min_region_fraction)
         idx.finish_run(
             plan.run_id,
             "incomplete" if summary.n_lost else "finished",

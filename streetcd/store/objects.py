@@ -22,7 +22,8 @@ new object. An object reviewed ``fixed`` that is seen again after the review is 
 change (the street changed again), as is a change outside the box.
 
 :func:`list_objects` is the read side (the contract of ``docs/DECISIONS.md``): it opens the
-index read-only.
+index read-only. It lives in :mod:`streetcd.store.object_list`, which imports no numpy, so
+that ``streetcd query`` starts fast; it and the status and kind names are re-exported here.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import json
 import logging
 import math
 import sqlite3
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,14 +45,16 @@ from streetcd import classes as C
 from streetcd.config import ClassMap, RunParams
 from streetcd.errors import InputError, MissingInputError, StreetcdError
 from streetcd.geometry.merge import covers, link_regions, nearest_to_rays
-from streetcd.store.index import ChangeIndex, _check_bbox, limit_clause, parse_since, utc_now
+from streetcd.store.index import ChangeIndex, utc_now
+from streetcd.store.object_list import KINDS as KINDS
+from streetcd.store.object_list import LIST_STATUSES as LIST_STATUSES
+from streetcd.store.object_list import REVIEW_STATUSES as REVIEW_STATUSES
+from streetcd.store.object_list import check_fraction as check_fraction
+from streetcd.store.object_list import list_objects as list_objects
+from streetcd.store.object_list import normalise_status
 from streetcd.store.records import camera_from_json
 
 log = logging.getLogger(__name__)
-
-REVIEW_STATUSES = ("confirmed", "false_alarm", "fixed")
-LIST_STATUSES = ("awaiting", "transient", *REVIEW_STATUSES)
-KINDS = ("added", "removed", "unknown")
 
 MERGE_MARGIN_M = 0.5  # regions whose boxes come this close are one change...
 MAX_LINK_M = 4.0  # ...when their centroids are this close too
@@ -65,6 +69,11 @@ MAX_RAY_MISS_M = 1.0  # lines of sight that miss each other by more do not locat
 # bench, a passer-by beside it), which _agreeing splits. Twice MAX_RAY_MISS_M: a car seen in
 # parts by two views, or a region cut by the image border, still meets within it.
 MAX_AGREE_MISS_M = 2.0
+# A change near a segment's edge is seen by the views of two segments (seed 0's new pole:
+# one view in one grid cell, two in the next). Each segment's regions are linked with the
+# other segments' regions whose boxes lie this close to its own: ray links between one
+# object's regions span ~6 m on the quick tour's façades, so 20 m leaves room.
+HALO_M = 20.0
 
 # Where the old cloud says the change is on the road, or was a parked car, a vehicle or a
 # pedestrian came or went (issue 17): not a change of the street.
@@ -88,6 +97,7 @@ class _Region:
     camera: np.ndarray | None  # (3,) camera centre
     image_px: int | None  # pixels in the view's image (None: camera unknown)
     foot: int = 0  # old cloud's class behind the region's lowest pixels
+    segment: str = ""  # the segment of its view
 
 
 # --- building ---------------------------------------------------------------------------
@@ -101,6 +111,7 @@ def rebuild_objects(
     segment_ids: Iterable[str],
     ground_class: GroundClass | None = None,
     min_region_fraction: float = MIN_REGION_FRACTION,
+    skip: Iterable[str] = (),
 ) -> int:
     """Rewrite the change objects of ``segment_ids`` from the index's regions, one
     transaction per segment. Returns how many objects they now hold.
@@ -110,12 +121,44 @@ def rebuild_objects(
     is a transient. Without it that test is skipped. min_region_fraction : the config's
     ``run.min_region_fraction``: an object none of whose regions covers that share of its
     image is a transient ("small"), as a view with no such region is not flagged.
+    skip : segments whose objects are known to be up to date (rebuilt since their inputs
+    last changed): not rebuilt, asked or near (a night's :class:`ObjectBuilder`'s).
     """
+    asked = set(segment_ids)
+    # A segment whose regions are linked with the asked ones' may own an object that takes
+    # their new regions: it is rebuilt too.
+    near = {
+        g.segment for seg in asked for g in _load_near(idx.conn, seg, _load_regions(idx.conn, seg))
+    }
+    return rebuild_segments(idx, (asked | near) - set(skip), ground_class, min_region_fraction)
+
+
+def rebuild_segments(
+    idx: ChangeIndex,
+    segment_ids: Iterable[str],
+    ground_class: GroundClass | None = None,
+    min_region_fraction: float = MIN_REGION_FRACTION,
+) -> int:
+    """:func:`rebuild_objects` of exactly ``segment_ids``, not of the segments near them
+    (for a caller that rebuilds those itself). Returns how many objects they now hold."""
     total = 0
     for seg in sorted(set(segment_ids)):
         with idx.transaction():
             total += _rebuild_segment(idx.conn, seg, ground_class, min_region_fraction)
     return total
+
+
+def influence_m(max_range_m: float) -> float:
+    """How far (x/y metres) from a segment's box a view's camera centre can be and its
+    results still change the segment's objects: a view within SEE_RANGE_M sees its spots;
+    a view's regions lie within ``max_range_m`` (the detector's) of its camera, and a
+    segment links the other segments' regions within HALO_M of its own, which lie within
+    ``max_range_m`` of its cameras."""
+    return max(SEE_RANGE_M, 2 * max_range_m + HALO_M)
+
+
+GROUND_CACHE_BYTES = 192 * 2**20  # the road test's tiles (19 bytes a point)...
+GROUND_CHUNK_BYTES = 128 * 2**20  # ...and the store's chunks it decompressed (13 bytes a point)
 
 
 def ground_classes(
@@ -124,13 +167,31 @@ def ground_classes(
     """``(x, y) → class``: the most frequent class of the tile store's points within
     ``radius_m`` (x/y) of the point, in streetcd's codes (the store's own codes read
     through ``class_map``, the config's ``detect.classes``; its default without one), None
-    where there are none. The store is opened on the first call, tiles read through the
-    process's tile cache; a store that cannot be opened is logged once and answers None (the
-    road test is then skipped, nothing fails)."""
+    where there are none. The store is opened on the first call; a store that cannot be
+    opened is logged once and answers None (the road test is then skipped, nothing fails).
+
+    Reading and scanning whole tiles on every call was most of a 10,000-view night's last
+    two minutes. Here a tile is read once, its x, y and classes only (not through the
+    process's tile cache), its decompressed chunks kept for the next tiles that share them
+    (:data:`GROUND_CHUNK_BYTES`), and kept sorted by x (:class:`_GroundTile`, an LRU of
+    :data:`GROUND_CACHE_BYTES`): a call tests the points of a thin x-slice of it."""
     roles = np.asarray((class_map or ClassMap()).table(), np.uint8)
     from streetcd.store.tiles import TileStore
 
     opened: list[Any] = []
+    cache: OrderedDict[str, _GroundTile] = OrderedDict()
+    chunks: dict[tuple[int, str, int], np.ndarray] = {}
+
+    def tile(tiles: Any, tid: str) -> _GroundTile:
+        hit = cache.get(tid)
+        if hit is not None:
+            cache.move_to_end(tid)
+            return hit
+        cloud = tiles.read_tiles([tid], cache=False, fields=(), chunks=chunks)[tid]
+        cache[tid] = new = _GroundTile.of(cloud, roles)
+        _trim(chunks, GROUND_CHUNK_BYTES, lambda a: a.nbytes)
+        _trim(cache, GROUND_CACHE_BYTES, lambda t: t.nbytes)
+        return new
 
     def at(x: float, y: float) -> int | None:
         if not opened:
@@ -143,15 +204,72 @@ def ground_classes(
         if tiles is None:
             return None
         found = tiles.tiles_in_bbox(x - radius_m, y - radius_m, x + radius_m, y + radius_m)
-        codes = []
-        for cloud in tiles.read_tiles([t.id for t in found]).values():
-            xy = cloud.xyz[:, :2] + cloud.origin[:2]
-            near = np.sum((xy - (x, y)) ** 2, axis=1) <= radius_m**2
-            codes.append(roles[cloud.classification[near]])
+        codes = [tile(tiles, t.id).near(x, y, radius_m) for t in found]
         allc = np.concatenate(codes) if codes else np.zeros(0, np.uint8)
         return int(np.bincount(allc).argmax()) if allc.size else None
 
     return at
+
+
+def _trim(cache: dict, max_bytes: int, size: Callable[[Any], int]) -> None:
+    """Drop the oldest entries of ``cache`` (insertion order) until it holds ``max_bytes``
+    or one entry."""
+    held = sum(size(v) for v in cache.values())
+    while held > max_bytes and len(cache) > 1:
+        held -= size(cache.pop(next(iter(cache))))
+
+
+@dataclass(frozen=True)
+class _GroundTile:
+    """One tile's points for the road test, in the order of ``key`` (M,) uint16, their
+    local x quantised (sorted by a radix sort, several times faster than sorting the
+    floats): ``x``, ``y`` (M,) float64 metres local to ``origin``, as the tile reader gives
+    them; ``role`` (M,) uint8 streetcd codes; ``x0`` and ``per_m`` map x to ``key``."""
+
+    key: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    role: np.ndarray
+    origin: np.ndarray
+    x0: float
+    per_m: float
+
+    @staticmethod
+    def of(cloud: Any, roles: np.ndarray) -> _GroundTile:
+        x = cloud.xyz[:, 0]
+        x0 = float(x.min()) if len(x) else 0.0
+        per_m = 65535.0 / max(float(x.max()) - x0, 1e-6) if len(x) else 1.0
+        key = np.floor((x - x0) * per_m).clip(0, 65535).astype(np.uint16)
+        order = np.argsort(key, kind="stable")
+        return _GroundTile(
+            key[order],
+            x[order],
+            cloud.xyz[order, 1],
+            roles[cloud.classification[order]],
+            np.asarray(cloud.origin[:2], np.float64),
+            x0,
+            per_m,
+        )
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.key.nbytes + self.x.nbytes + self.y.nbytes + self.role.nbytes)
+
+    def near(self, x: float, y: float, radius_m: float) -> np.ndarray:
+        """The roles of the points within ``radius_m`` of CRS (x, y): the points of the
+        x-slice (a millimetre wider, for rounding), then the exact test of the whole-tile
+        scan it replaces, the same float operations in the same order."""
+        lx = x - self.origin[0]
+        lo = math.floor((lx - radius_m - 1e-3 - self.x0) * self.per_m)
+        hi = math.floor((lx + radius_m + 1e-3 - self.x0) * self.per_m)
+        if hi < 0 or lo > 65535:
+            return np.zeros(0, np.uint8)
+        a = int(np.searchsorted(self.key, max(lo, 0), side="left"))
+        b = int(np.searchsorted(self.key, min(hi, 65535), side="right"))
+        gx = self.x[a:b] + self.origin[0]
+        gy = self.y[a:b] + self.origin[1]
+        near = (gx - x) ** 2 + (gy - y) ** 2 <= radius_m**2
+        return self.role[a:b][near]
 
 
 def _rebuild_segment(
@@ -160,16 +278,22 @@ def _rebuild_segment(
     ground_class: GroundClass | None = None,
     min_region_fraction: float = MIN_REGION_FRACTION,
 ) -> int:
-    regions = _load_regions(conn, segment)
+    own = _load_regions(conn, segment)
+    near = _load_near(conn, segment, own)
+    regions = sorted(own + near, key=lambda g: (g.night, g.view, g.label))
     _drop_objects(conn, segment)
+    segments = sorted({segment} | {g.segment for g in near})
     reviews = conn.execute(
-        "SELECT * FROM reviews WHERE segment_id = ? ORDER BY object_id", (segment,)
+        f"SELECT * FROM reviews WHERE segment_id IN ({','.join('?' * len(segments))})"
+        " ORDER BY object_id",
+        segments,
     ).fetchall()
     groups: list[tuple[str | None, list[_Region]]] = []
     free = list(regions)
     for rv in reviews:
         mine, free = _claim(rv, free)
-        groups.append((rv["object_id"], mine))
+        if rv["segment_id"] == segment:  # another segment's review is written there
+            groups.append((rv["object_id"], mine))
     if free:
         view_of = {v: k for k, v in enumerate(sorted({g.view for g in free}))}
         labels = link_regions(
@@ -186,7 +310,9 @@ def _rebuild_segment(
         )
         for k in range(int(labels.max()) + 1):
             linked = [g for g, lab in zip(free, labels, strict=True) if lab == k]
-            groups.extend((None, part) for part in _agreeing(linked))
+            # An object belongs to the segment of its first region (earliest night, view
+            # key): the neighbour's rebuild, linking the same regions, writes the others.
+            groups.extend((None, p) for p in _agreeing(linked) if p and p[0].segment == segment)
     views = _views_near(conn, segment)
     n = 0
     for object_id, members in groups:
@@ -242,16 +368,40 @@ def _claim(review: sqlite3.Row, regions: list[_Region]) -> tuple[list[_Region], 
     return mine, rest
 
 
+_REGION_SQL = (
+    "SELECT f.view, g.label, g.pixels, g.score, g.x, g.y, g.z, g.min_x, g.min_y, g.min_z,"
+    " g.max_x, g.max_y, g.max_z, g.dominant_class, g.foot_class, f.segment_id,"
+    " coalesce(f.captured_at, f.detected_at) AS seen, v.center_x, v.center_y, v.center_z,"
+    " v.camera"
+    " FROM regions g JOIN flagged f ON f.id = g.flagged_id JOIN views v ON v.view = f.view"
+)
+
+
 def _load_regions(conn: sqlite3.Connection, segment: str) -> list[_Region]:
+    """The located regions of the segment's flagged views, all nights."""
     rows = conn.execute(
-        "SELECT f.view, g.label, g.pixels, g.score, g.x, g.y, g.z, g.min_x, g.min_y, g.min_z,"
-        " g.max_x, g.max_y, g.max_z, g.dominant_class, g.foot_class,"
-        " coalesce(f.captured_at, f.detected_at) AS seen, v.center_x, v.center_y, v.center_z,"
-        " v.camera"
-        " FROM regions g JOIN flagged f ON f.id = g.flagged_id JOIN views v ON v.view = f.view"
-        " WHERE f.segment_id = ? AND g.x IS NOT NULL ORDER BY seen, f.view, g.label",
-        (segment,),
+        _REGION_SQL + " WHERE f.segment_id = ? AND g.x IS NOT NULL", (segment,)
     ).fetchall()
+    return _as_regions(rows)
+
+
+def _load_near(conn: sqlite3.Connection, segment: str, own: Sequence[_Region]) -> list[_Region]:
+    """The located regions of other segments' views whose x/y boxes come within HALO_M of
+    the x/y box of ``own`` (the segment's regions): what a change near its edge may link."""
+    if not own:
+        return []
+    lo = np.min([g.lo for g in own], axis=0) - HALO_M
+    hi = np.max([g.hi for g in own], axis=0) + HALO_M
+    rows = conn.execute(
+        _REGION_SQL + " WHERE f.segment_id != ? AND g.x IS NOT NULL AND g.id IN"
+        " (SELECT id FROM regions_rtree WHERE max_x >= ? AND min_x <= ? AND max_y >= ?"
+        " AND min_y <= ?)",
+        (segment, float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
+    ).fetchall()
+    return _as_regions(rows)
+
+
+def _as_regions(rows: Sequence[sqlite3.Row]) -> list[_Region]:
     out = []
     for r in rows:
         cam = (
@@ -274,6 +424,7 @@ def _load_regions(conn: sqlite3.Connection, segment: str) -> list[_Region]:
                 cam,
                 _image_px(r["camera"]),
                 int(r["foot_class"]),
+                r["segment_id"],
             )
         )
     # Night first, so that an object's first region is its first night's.
@@ -580,170 +731,10 @@ def _transient(cls: int, members: Sequence[_Region], without: Sequence[_ViewGeom
     return None
 
 
-# --- reading ------------------------------------------------------------------------------
-
-
-def _connect_ro(index_path: str | Path) -> ChangeIndex:
-    return ChangeIndex(index_path, readonly=True)
-
-
-def list_objects(
-    index_path: str | Path,
-    *,
-    status: str | None = None,
-    segment: str | None = None,
-    kind: str | None = None,
-    bbox: Sequence[float] | None = None,
-    limit: int | None = None,
-    sort: str = "confidence",
-    since: str | None = None,
-    min_confidence: float | None = None,
-    transients: bool = True,
-) -> list[dict]:
-    """The change objects of an index, as plain dicts (see ``docs/DECISIONS.md``, issue 17).
-
-    status : ``awaiting`` (not reviewed, not transient), ``transient``, or a review status
-        (``confirmed``, ``false_alarm``, ``fixed``); None: all. segment : a segment id.
-    kind : ``added``, ``removed``, ``unknown``. bbox : (min_x, min_y, max_x, max_y) in the
-        index's CRS, objects whose x/y box meets it. limit : at most this many (≥ 0).
-    sort : ``confidence`` (highest first, then id) or ``id``.
-    since : ISO date: objects last seen on or after that night.
-    min_confidence : confidence ≥ this (a finite number in [0, 1]).
-    transients : False leaves out transients (before ``limit``).
-    Opens the index read-only (never creates or writes a file).
-    """
-    where, args = _filters(status, segment, kind, bbox)
-    if since is not None:
-        where.append("o.last_seen >= ?")
-        args.append(parse_since(since)[:10])
-    if min_confidence is not None:
-        where.append("o.confidence >= ?")
-        args.append(check_fraction("min_confidence", min_confidence))
-    if not transients:
-        where.append("o.transient IS NULL")
-    if sort not in ("confidence", "id"):
-        raise InputError(f"sort {sort!r} must be 'confidence' or 'id'")
-    order = "o.confidence DESC, o.object_id" if sort == "confidence" else "o.object_id"
-    sql = (
-        "SELECT o.*, r.status AS r_status, r.who AS r_who, r.at AS r_at, r.note AS r_note"
-        " FROM objects o LEFT JOIN reviews r ON r.object_id = o.object_id"
-        + (" WHERE " + " AND ".join(where) if where else "")
-        + f" ORDER BY {order}"
-    )
-    sql += limit_clause(limit)
-    with _connect_ro(index_path) as idx:
-        rows = idx.conn.execute(sql, args).fetchall()
-        views = _views_of(idx.conn, [r["object_id"] for r in rows])
-        return [_as_dict(r, views.get(r["object_id"], [])) for r in rows]
-
-
-def _filters(
-    status: str | None, segment: str | None, kind: str | None, bbox: Sequence[float] | None
-) -> tuple[list[str], list[Any]]:
-    where: list[str] = []
-    args: list[Any] = []
-    if status is not None:
-        status = normalise_status(status, LIST_STATUSES)
-        if status == "awaiting":
-            where.append("r.status IS NULL AND o.transient IS NULL")
-        elif status == "transient":
-            where.append("o.transient IS NOT NULL")
-        else:
-            where.append("r.status = ?")
-            args.append(status)
-    if segment is not None:
-        where.append("o.segment_id = ?")
-        args.append(segment)
-    if kind is not None:
-        if kind not in KINDS:
-            raise InputError(f"kind {kind!r} must be one of {', '.join(KINDS)}")
-        where.append("o.kind = ?")
-        args.append(kind)
-    if bbox is not None:
-        mnx, mny, mxx, mxy = _check_bbox(bbox)
-        where.append(
-            "o.id IN (SELECT id FROM objects_rtree WHERE max_x >= ? AND min_x <= ?"
-            " AND max_y >= ? AND min_y <= ?)"
-        )
-        args += [mnx, mxx, mny, mxy]
-    return where, args
-
-
-def _views_of(conn: sqlite3.Connection, object_ids: Sequence[str]) -> dict[str, list[dict]]:
-    """The views of objects ``object_ids``, by object id, those that see the change first,
-    then by view: one query per 500 objects (one per object was most of a big listing's
-    time)."""
-    out: dict[str, list[dict]] = {}
-    for k in range(0, len(object_ids), 500):
-        chunk = object_ids[k : k + 500]
-        for v in conn.execute(
-            "SELECT ov.object_id, ov.view, ov.sees_change, ov.labels, w.image, w.image_path,"
-            " f.overlay_path, f.mask_path, f.score FROM object_views ov"
-            " LEFT JOIN views w ON w.view = ov.view"
-            " LEFT JOIN flagged f ON f.view = ov.view AND ov.sees_change = 1"
-            f" WHERE ov.object_id IN ({','.join('?' * len(chunk))})"
-            " ORDER BY ov.object_id, ov.sees_change DESC, ov.view",
-            chunk,
-        ):
-            out.setdefault(v["object_id"], []).append(
-                {
-                    "view": v["view"],
-                    "image": v["image"],
-                    "overlay": v["overlay_path"],
-                    "mask": v["mask_path"],
-                    "image_path": v["image_path"],
-                    "sees_change": bool(v["sees_change"]),
-                    "labels": json.loads(v["labels"]),
-                    "score": v["score"],
-                }
-            )
-    return out
-
-
-def _as_dict(r: sqlite3.Row, views: list[dict]) -> dict:
-    review = None
-    if r["r_status"] is not None:
-        review = {"status": r["r_status"], "who": r["r_who"], "at": r["r_at"], "note": r["r_note"]}
-    return {
-        "id": r["object_id"],
-        "kind": r["kind"],
-        "class": r["class"],
-        "class_name": C.NAMES.get(r["class"], "unknown"),
-        "confidence": r["confidence"],
-        "centroid": [r["x"], r["y"], r["z"]],
-        "bbox": [r["min_x"], r["min_y"], r["min_z"], r["max_x"], r["max_y"], r["max_z"]],
-        "segment": r["segment_id"],
-        "pixels": r["pixels"],
-        "n_views": r["n_views"],
-        "n_without": r["n_without"],
-        "views": views,
-        "first_seen": r["first_seen"],
-        "last_seen": r["last_seen"],
-        "review": review,
-        "transient": r["transient"],
-    }
-
-
-def check_fraction(name: str, value: object) -> float:
-    """``value`` as a float in [0, 1]; InputError naming ``name`` for NaN, inf, junk."""
-    try:
-        x = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise InputError(f"{name} {value!r} is not a number") from None
-    if not (math.isfinite(x) and 0.0 <= x <= 1.0):
-        raise InputError(f"{name} {value!r} must be a finite number in [0, 1]")
-    return x
+# --- reading: streetcd.store.object_list (list_objects, check_fraction) -----------------
 
 
 # --- reviewing ----------------------------------------------------------------------------
-
-
-def normalise_status(status: str, allowed: Sequence[str] = REVIEW_STATUSES) -> str:
-    """``status`` with ``-`` read as ``_`` (``false-alarm``); InputError if not allowed."""
-    s = str(status).strip().lower().replace("-", "_")
-    if s not in allowed:
-        raise InputError(f"status {status!r} must be one of {', '.join(allowed)}")
-    return s
 
 
 def record_review(

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from streetcd.errors import InputError
-from streetcd.types import Intrinsics, Pose, View
+
+if TYPE_CHECKING:  # numpy and the camera types load with the camera helpers below: a query
+    from streetcd.types import View  # reads records and needs neither (docs/BENCHMARKS.md)
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,8 @@ def camera_json(view: View) -> str:
     """A view's camera as compact JSON: ``R`` (3x3, world→camera), ``t`` (3,) metres in the
     CRS, and the intrinsics ``w, h, fx, fy, cx, cy`` (pixels; lens distortion is left out:
     what the index uses it for, whether a point is in view, does not need it)."""
+    import numpy as np
+
     i = view.intrinsics
     return json.dumps(
         {
@@ -127,6 +130,10 @@ def camera_json(view: View) -> str:
 
 def camera_from_json(name: str, text: str) -> View:
     """The :class:`View` (without its image) of :func:`camera_json`'s text."""
+    import numpy as np
+
+    from streetcd.types import Intrinsics, Pose, View
+
     d = json.loads(text)
     intr = Intrinsics(int(d["w"]), int(d["h"]), d["fx"], d["fy"], d["cx"], d["cy"])
     return View(name, intr, Pose(np.asarray(d["R"], np.float64), np.asarray(d["t"], np.float64)))

@@ -61,7 +61,7 @@ them once it names them (how ingest commits: :mod:`streetcd.store.ingest`). Read
 lock. A TileStore opened before a commit that replaced a source cannot read that source's
 points any more: open the store again. Decoded tiles are kept in one LRU cache per process,
 :func:`tile_cache`, created on first use and sized by ``STREETCD_TILE_CACHE_MB`` (MiB,
-default 1024).
+default 256).
 """
 
 from __future__ import annotations
@@ -95,6 +95,7 @@ INDEX_ATTR = "streetcd_tiles"
 LOCK_NAME = ".lock"
 _SEGMENT_COLUMNS = 11  # i, j, source row, start, count, min xyz, max xyz
 CACHE_ENV = "STREETCD_TILE_CACHE_MB"  # MiB of the process-wide tile cache
+DEFAULT_CACHE_MB = "256"
 
 
 # --- the index ---------------------------------------------------------------------------
@@ -263,7 +264,7 @@ def read_chunk(a: Any, folder: Path, c: int) -> np.ndarray:
 class TileCache:
     """LRU cache of decoded tiles (PointCloud) bounded by their bytes, shared by all stores
     of a process so that neighbouring views reuse tiles. The process-wide one,
-    :func:`tile_cache`, holds ``STREETCD_TILE_CACHE_MB`` MiB (default 1024)."""
+    :func:`tile_cache`, holds ``STREETCD_TILE_CACHE_MB`` MiB (default 256)."""
 
     def __init__(self, max_bytes: int) -> None:
         self.max_bytes = int(max_bytes)
@@ -313,7 +314,7 @@ _TILE_CACHE_LOCK = threading.Lock()
 
 def tile_cache() -> TileCache:
     """The process-wide :class:`TileCache`, created on the first call with
-    ``STREETCD_TILE_CACHE_MB`` MiB (default 1024). InputError, naming the variable and its
+    ``STREETCD_TILE_CACHE_MB`` MiB (default 256). InputError, naming the variable and its
     value, when that is not a number ≥ 0."""
     global _TILE_CACHE
     if _TILE_CACHE is None:
@@ -324,8 +325,10 @@ def tile_cache() -> TileCache:
 
 
 def _cache_bytes() -> int:
-    """The tile cache's size in bytes, from ``STREETCD_TILE_CACHE_MB`` (MiB, default 1024)."""
-    raw = os.environ.get(CACHE_ENV, "1024")
+    """The tile cache's size in bytes, from ``STREETCD_TILE_CACHE_MB`` (MiB, default 256:
+    a segment's tiles and its neighbours', filled within the first few hundred views so
+    that a worker's memory is flat from then on; docs/DECISIONS.md, 2026-11-25)."""
+    raw = os.environ.get(CACHE_ENV, DEFAULT_CACHE_MB)
     try:
         mib = float(raw)
     except ValueError:
@@ -333,7 +336,7 @@ def _cache_bytes() -> int:
     if not (math.isfinite(mib) and mib >= 0):
         raise InputError(
             f"{CACHE_ENV}={raw!r}: the tile cache size must be a number of MiB >= 0 "
-            "(e.g. 1024, the default)"
+            f"(e.g. {DEFAULT_CACHE_MB}, the default)"
         )
     return int(mib * 2**20)
 
@@ -545,8 +548,20 @@ class TileStore:
         arrays are then read-only (shared by every caller of this process)."""
         return self.read_tiles([tid], cache=cache)[tid]
 
-    def read_tiles(self, tids: Sequence[str], *, cache: bool = True) -> dict[str, PointCloud]:
-        """:meth:`read_tile` for several tiles at once: {tile id: cloud}.
+    def read_tiles(
+        self,
+        tids: Sequence[str],
+        *,
+        cache: bool = True,
+        fields: Sequence[str] | None = None,
+        chunks: dict[tuple[int, str, int], np.ndarray] | None = None,
+    ) -> dict[str, PointCloud]:
+        """:meth:`read_tile` for several tiles at once: {tile id: cloud}. ``fields``: read
+        only these of the points' arrays (``xyz`` and ``classification`` always), not
+        through the tile cache (the change objects' road test needs only those two: 13 of
+        the 41 bytes a point holds). ``chunks``: the decompressed chunks, {(source, field,
+        chunk number): rows}, kept by the caller from call to call (this adds to it; the
+        caller bounds it) so that tiles read one at a time decompress a chunk once.
 
         A source file's points are stored in chunks of ``chunk_points`` rows, each
         compressed as a whole, and a tile's run is usually a few thousand rows of one chunk:
@@ -554,7 +569,8 @@ class TileStore:
         chunk the missing tiles need is decompressed once (the gain, per tile and per segment
         crop: docs/BENCHMARKS.md).
         """
-        tc = tile_cache() if cache else None
+        tc = tile_cache() if cache and fields is None else None
+        want = None if fields is None else {"xyz", "classification", *fields}
         out: dict[str, PointCloud] = {}
         todo: list[tuple[str, int, TileInfo, tuple]] = []
         for tid in dict.fromkeys(tids):
@@ -568,11 +584,11 @@ class TileStore:
             else:
                 todo.append((tid, row, info, key))
         runs = {t[0]: self._segments[self._first[t[1]] : self._last[t[1]], 2:5] for t in todo}
-        chunks: dict[tuple[int, str, int], np.ndarray] = {}
+        chunks = {} if chunks is None else chunks
         for tid, *_ in todo:
-            self._chunks_for(tid, runs[tid].tolist(), chunks)
+            self._chunks_for(tid, runs[tid].tolist(), chunks, want)
         for tid, _, info, key in todo:
-            cloud = self._assemble(info, runs[tid], chunks)
+            cloud = self._assemble(info, runs[tid], chunks, want)
             if len(cloud) != info.count:  # a manifest or index that lies: never a short tile
                 raise CorruptFileError(
                     f"{self.path}: tile {tid}: read {len(cloud)} points, its index says "
@@ -618,7 +634,11 @@ class TileStore:
         return manifest
 
     def _chunks_for(
-        self, tid: str, runs: list[list[int]], out: dict[tuple[int, str, int], np.ndarray]
+        self,
+        tid: str,
+        runs: list[list[int]],
+        out: dict[tuple[int, str, int], np.ndarray],
+        fields: set[str] | None = None,
     ) -> None:
         """Put into ``out`` {(source, field, chunk number): its rows} every chunk the
         (source, start, count) ``runs`` of tile ``tid`` touch that is not there yet, each
@@ -629,6 +649,8 @@ class TileStore:
             try:
                 arrays = self._source_arrays(source)
                 for name, a in arrays.items():
+                    if fields is not None and name not in fields:
+                        continue
                     folder = self.path / "points" / self.sources[source][1] / name
                     for c in _chunk_numbers(start, count, a.chunks[0]):
                         if (source, name, c) not in out:
@@ -641,7 +663,11 @@ class TileStore:
                 ) from None
 
     def _assemble(
-        self, info: TileInfo, runs: np.ndarray, chunks: dict[tuple[int, str, int], np.ndarray]
+        self,
+        info: TileInfo,
+        runs: np.ndarray,
+        chunks: dict[tuple[int, str, int], np.ndarray],
+        want: set[str] | None = None,
     ) -> PointCloud:
         """Tile ``info``'s cloud from its (source, start, count) ``runs``, cut out of the
         decompressed ``chunks`` of :meth:`_chunks_for`."""
@@ -649,6 +675,8 @@ class TileStore:
         for source, start, count in runs.tolist():
             fields = {}
             for name, a in self._source_arrays(source).items():
+                if want is not None and name not in want:
+                    continue
                 rows = a.chunks[0]
                 pieces = [
                     chunks[source, name, c][max(start - c * rows, 0) : start + count - c * rows]

@@ -1,0 +1,121 @@
+"""``streetcd query``'s fast paths give what the slow ones gave: JSON written by orjson one
+entry a line parses to the same objects and views as the standard library's encoding of
+the same records; the read side loads no numpy (docs/BENCHMARKS.md, query speed)."""
+
+import json
+import subprocess
+import sys
+from dataclasses import asdict
+
+import pytest
+from click.testing import CliRunner
+from test_objects import BIN, BOX, POLE, night
+
+from streetcd.cli.query import query as query_cmd
+from streetcd.cli.query import run_query
+from streetcd.store import object_list, objects
+from streetcd.store.index import ChangeIndex
+
+HEAVY = ("numpy", "zarr", "numba", "yaml", "streetcd.config", "streetcd.types")
+HEAVY += ("streetcd.geometry", "streetcd.detect", "streetcd.store.objects")
+
+
+@pytest.fixture(scope="module")
+def two_nights(tmp_path_factory):
+    """Two nights of test_objects' street (a pole gone, a box added, then a bin): change
+    objects, transients among them, and flagged views with located regions."""
+    index = tmp_path_factory.mktemp("q") / "change_index.sqlite"
+    night(index, "aaa", [("removed", POLE), ("added", BOX)], "2026-11-01")
+    night(index, "bbb", [("removed", POLE), ("added", BOX), ("added", BIN)], "2026-11-08")
+    return index
+
+
+def cli(index, *args):
+    out = CliRunner().invoke(query_cmd, ["--index", str(index), *args])
+    assert out.exit_code == 0, out.output
+    return out.output
+
+
+def test_objects_json_is_the_listing_one_object_a_line(two_nights):
+    text = cli(two_nights, "--format", "json", "--transients")
+    listing = object_list.list_objects(two_nights)
+    assert len(listing) >= 2
+    # what the standard library wrote before, parsed: the same document
+    assert json.loads(text) == json.loads(json.dumps({"crs": None, "objects": listing}))
+    lines = text.rstrip("\n").split("\n")
+    assert lines[0] == '{"crs":null,"objects":[' and lines[-1] == "]}"
+    entries = [json.loads(line.removesuffix(",")) for line in lines[1:-1]]
+    assert [e["id"] for e in entries] == [o["id"] for o in listing]
+    for key in ("id", "kind", "confidence", "centroid", "bbox", "views", "first_seen"):
+        assert all(key in e for e in entries)
+    assert all("last_seen" in e and "review" in e for e in entries)
+
+
+def test_views_json_equals_the_dataclass_form(two_nights):
+    text = cli(two_nights, "--views", "--format", "json")
+    with ChangeIndex(two_nights, readonly=True) as idx:
+        rows = idx.query()
+    before = [
+        {"id": r.view, "image": r.image, "segment": r.segment_id, "score": r.score, **asdict(r)}
+        for r in rows
+    ]
+    assert any(g.located for r in rows for g in r.regions)
+    assert json.loads(text) == json.loads(json.dumps({"crs": None, "views": before}))
+    assert len(text.rstrip("\n").split("\n")) == len(rows) + 2
+
+
+@pytest.mark.parametrize("views", [False, True])
+def test_an_empty_answer_is_still_a_document(two_nights, views):
+    text = run_query(two_nights, fmt="json", views=views, limit=0)
+    assert json.loads(text) == {"crs": None, ("views" if views else "objects"): []}
+
+
+def test_geojson_lists_the_same_objects(two_nights):
+    text = cli(two_nights, "--format", "geojson", "--native-crs", "--transients")
+    gj = json.loads(text)
+    ids = [f["properties"]["id"] for f in gj["features"]]
+    assert ids == [o["id"] for o in object_list.list_objects(two_nights)]
+
+
+def test_the_cli_leaves_transients_out_the_library_keeps_them(two_nights):
+    every = object_list.list_objects(two_nights)
+    street = [o["id"] for o in every if o["transient"] is None]
+    assert len(street) < len(every)  # the fixture has transients
+    data = json.loads(cli(two_nights, "--format", "json"))
+    assert [o["id"] for o in data["objects"]] == street
+
+
+def test_view_labels_are_not_shared_between_views(two_nights):
+    views = [v for o in object_list.list_objects(two_nights) for v in o["views"]]
+    same = [v for v in views if v["labels"] == views[0]["labels"]]
+    assert len(same) >= 2  # label lists recur (that is why they are decoded once)
+    same[0]["labels"].append(99)
+    assert 99 not in same[1]["labels"]
+
+
+def test_the_write_side_reexports_the_read_side():
+    assert objects.list_objects is object_list.list_objects
+    assert objects.REVIEW_STATUSES == object_list.REVIEW_STATUSES
+    assert objects.check_fraction is object_list.check_fraction
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["--format", "json"], ["--limit", "5"], ["--views"], ["--views", "--format", "json"]],
+)
+def test_a_real_query_loads_no_numpy_nor_the_detector(two_nights, args):
+    # half of a small query's time as a command was numpy and the rebuild's modules
+    probe = (
+        "import sys\nfrom streetcd.cli.main import cli\ntry:\n"
+        "    cli(sys.argv[1:], prog_name='streetcd')\nexcept SystemExit as e:\n"
+        "    assert not e.code, e.code\n"
+        f"print(sorted(m for m in {HEAVY!r} if m in sys.modules), file=sys.stderr)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe, "query", "--index", str(two_nights), *args],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert out.stderr.strip().splitlines()[-1] == "[]"
+    assert out.stdout.strip()  # it did answer
