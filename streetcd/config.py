@@ -152,9 +152,32 @@ class CorrelateParams:
     # the nearest-by minimum depth for the occlusion test (streetcd.detect.correlate.hole_depths:
     # near poles leave holes between their sparse points); 0 = holes hide nothing (the paper)
     occluder_fill_px: float = 120.0
+    # our addition (issue 16): the nearer-depth test (streetcd.detect.sweep): the fused change
+    # is also max(..., nearer_weight · N_p), N_p how much better a depth in front of the old
+    # surface explains the view and its neighbours (added objects); 0 = off, the default: on
+    # the validation set it gains at full size and loses at 1280 × 720 (docs/TUNING.md)
+    nearer_weight: float = 0.0
+    nearer_fractions: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+    nearer_margin: float = 0.05  # colour distance (0-1) the nearer depth must gain ...
+    nearer_span: float = 0.15  # ... and beyond it, this much more for N_p = 1
+    nearer_match: float = 0.08  # ... and explain the pixel: its worst distance at most this
+    nearer_window_px: int = 5  # colours averaged over this square at the working scale
+    nearer_scale: float = 0.5  # the test runs at this fraction of the image's resolution
 
     def __post_init__(self) -> None:
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")
+        _check(self.nearer_weight >= 0, "nearer_weight", self.nearer_weight, ">= 0")
+        _check(
+            all(0 < f < 1 for f in self.nearer_fractions),
+            "nearer_fractions",
+            self.nearer_fractions,
+            "fractions in (0, 1)",
+        )
+        object.__setattr__(self, "nearer_fractions", tuple(float(f) for f in self.nearer_fractions))
+        _check(self.nearer_span > 0, "nearer_span", self.nearer_span, "> 0")
+        _check(self.nearer_match >= 0, "nearer_match", self.nearer_match, ">= 0")
+        _check(self.nearer_window_px >= 1, "nearer_window_px", self.nearer_window_px, ">= 1")
+        _check(0 < self.nearer_scale <= 1, "nearer_scale", self.nearer_scale, "in (0, 1]")
         _check(self.min_parallax_px >= 0, "min_parallax_px", self.min_parallax_px, ">= 0")
         _check(self.occluder_fill_px >= 0, "occluder_fill_px", self.occluder_fill_px, ">= 0")
         lo, hi = self.stretch_percentiles
@@ -198,6 +221,12 @@ class GraphCutParams:
     use_depth: bool = True
     use_class: bool = True
     speckle_min_px: int = 200  # segments smaller than this are removed (at reference width)
+    # our reading of the paper's superpixel speed-up (issue 16): a superpixel's node energy is
+    # eq. 7 of its mean raw change ("for each superpixel, the color value and depth value are
+    # assigned as the average value over all the pixels"), not the mean of its pixels' eq. 7:
+    # a weak change that holds over a whole object is not flattened by the S-curve pixel by
+    # pixel, and a few stray pixels of high change weigh less. False: the mean of eq. 7
+    energy_of_mean: bool = False
 
     def __post_init__(self) -> None:
         _check(self.a > 0, "a", self.a, "> 0")
@@ -536,6 +565,11 @@ class Config:
         ):
             if detect["surface"][key] == off:  # no limit on the widening: older hashes hold
                 del detect["surface"][key]
+        if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold
+            for key in [k for k in detect["correlate"] if k.startswith("nearer")]:
+                del detect["correlate"][key]
+        if not self.detect.graphcut.energy_of_mean:  # the mean of eq. 7: older hashes hold
+            del detect["graphcut"]["energy_of_mean"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
             for key in [k for k in detect["appearance"] if k.startswith("intensity")]:
                 del detect["appearance"][key]

@@ -589,3 +589,24 @@ def test_an_unclassified_cloud_is_named_once_per_cache(images, caplog):
 def test_a_bad_class_map_is_named(values, message):
     with pytest.raises(InputError, match=message):
         config_from_dict({"detect": {"classes": values}})
+
+
+def test_the_nearer_depth_test_is_wired_as_one_more_cue_and_leaves_an_unchanged_street_alone(
+    images,
+):
+    """correlate.nearer_weight (streetcd.detect.sweep, whose own tests show what it finds):
+    on, it runs as one more cue fused by max (the node energy never drops), the added board
+    is still found, and the unchanged street stays empty."""
+    from dataclasses import replace
+
+    on = replace(PARAMS, correlate=replace(PARAMS.correlate, nearer_weight=1.0))
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    view = make_view("p.png")
+    board = render(0.0)[1]
+    off = detect_view(images["p.png"], view, nbs, make_cloud(board=False), PARAMS)
+    added = detect_view(images["p.png"], view, nbs, make_cloud(board=False), on)
+    assert "nearer" in added.timings and "nearer" not in off.timings
+    assert np.all(added.node_energy >= off.node_energy)
+    assert added.mask[board].mean() > 0.75 and added.mask[~board].mean() < 0.005
+    unchanged = detect_view(images["p.png"], view, nbs, make_cloud(board=True), on)
+    assert not unchanged.mask.any()

@@ -15,6 +15,7 @@ from streetcd.detect.graphcut import (
     smoothness,
     speckle_filter,
     speckle_min_px,
+    superpixel_mean,
     superpixels,
 )
 
@@ -230,3 +231,27 @@ def test_node_energy_of_no_change_is_the_curve_at_zero():
     want = np.clip((1 / (1 + np.exp(11.0 - 45.0 * x)) - lo) / (hi - lo), 0, 1)
     assert f[0] == f[1] == 0.0
     np.testing.assert_allclose(f, want, atol=1e-6)
+
+
+def test_superpixel_mean_gives_each_pixel_its_superpixels_mean():
+    labels = np.array([[0, 0, 1], [2, 1, 1]])
+    values = np.array([[0.2, 0.4, 1.0], [0.5, 0.0, 0.5]], np.float32)
+    got = superpixel_mean(values, labels)
+    np.testing.assert_allclose(got, [[0.3, 0.3, 0.5], [0.5, 0.5, 0.5]], rtol=1e-6)
+    assert got.dtype == np.float32 and got.shape == values.shape
+
+
+def test_a_weak_change_over_a_whole_superpixel_outweighs_a_few_strong_pixels():
+    """Eq. 7 of the superpixel's mean raw change (energy_of_mean) against the mean of eq. 7:
+    a change of 0.3 over all of one superpixel (above the S-curve's middle, b/a = 0.244)
+    against 0.9 on a tenth of another's pixels (mean 0.09)."""
+    labels = np.repeat(np.arange(2), 50).reshape(10, 10)
+    change = np.zeros((10, 10), np.float32)
+    change[labels == 0] = 0.3
+    change[labels == 1] = np.where(np.arange(50) % 10 == 0, 0.9, 0.0)
+    mean_of_f = superpixel_mean(node_energy(change), labels)
+    f_of_mean = node_energy(superpixel_mean(change, labels))
+    weak, specks = labels == 0, labels == 1
+    assert f_of_mean[weak].min() == mean_of_f[weak].max()  # uniform: the same either way
+    assert f_of_mean[weak].min() > 0.5  # ... and changed
+    assert mean_of_f[specks].max() > 0.09 > f_of_mean[specks].max()  # specks weigh less

@@ -111,6 +111,9 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # for unclassified clouds, the intensity check, spacing-aware surfaces and z-buffer, the
     # texture cue's global shift; 55a05b5c9150e8fc before, c4cd6144c1e8798e before that)
     assert base.results_hash() == "7fee81a419188dbe"
+    # a switch added off keeps the hash; on, it changes it
+    nearer_on = Config(DetectParams(correlate=CorrelateParams(nearer_weight=1.0)))
+    assert nearer_on.results_hash() == "3f271f921a308aec"
     texture_off = Config(DetectParams(texture=TextureParams(enabled=False)))
     assert texture_off.results_hash() != base.results_hash()
     city_codes = Config(DetectParams(classes=ClassMap(pole=(15,))))

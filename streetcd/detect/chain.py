@@ -43,13 +43,20 @@ from streetcd.detect.correlate import (
     stretch_lut,
     weigh_low_classes,
 )
-from streetcd.detect.graphcut import cut_changes, nearest_index, node_energy
+from streetcd.detect.graphcut import (
+    cut_changes,
+    nearest_index,
+    node_energy,
+    superpixel_mean,
+    superpixels,
+)
 from streetcd.detect.intensity import intensity_change, intensity_codes
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions
 from streetcd.detect.roles import cloud_roles, useless_classes
 from streetcd.detect.silhouette import near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
+from streetcd.detect.sweep import nearer_depth_change
 from streetcd.detect.texture import texture_change
 from streetcd.errors import (
     EmptyViewError,
@@ -247,10 +254,18 @@ def detect_view(
         texture = _texture(image, surf, local, seen, params)
         fused = np.maximum(fused, np.float32(params.texture.weight) * texture)
         lap("texture")
+    if params.correlate.nearer_weight > 0 and len(seen) >= 2:
+        nearer = _nearer(image, surf, local, seen, params)
+        fused = np.maximum(fused, np.float32(params.correlate.nearer_weight) * nearer)
+        lap("nearer")
     seen.clear()
+    labels = None
+    if params.graphcut.energy_of_mean:  # eq. 7 of each superpixel's mean raw change
+        labels = superpixels(stretched, surf.classes, params.graphcut)
+        fused = superpixel_mean(fused, labels)
     energy = node_energy(fused, params.graphcut.a, params.graphcut.b)
     lap("node_energy")
-    cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut)
+    cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
     lap("graphcut")
     mask = refined_mask(image, cut.mask, params)
     lap("refine")
@@ -383,6 +398,36 @@ def _texture(
     )
     weigh_low_classes(texture, surf.classes, params.correlate)
     return texture
+
+
+def _nearer(
+    image: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    seen: Sequence[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]],
+    params: DetectParams,
+) -> np.ndarray:
+    """The nearer-depth test ``N_p`` (:mod:`streetcd.detect.sweep`), weighted by class like
+    eq. 5."""
+    cp = params.correlate
+    nearer = nearer_depth_change(
+        image,
+        surf.depth,
+        local.intrinsics,
+        local.pose,
+        seen,
+        fractions=cp.nearer_fractions,
+        margin=cp.nearer_margin,
+        span=cp.nearer_span,
+        match=cp.nearer_match,
+        window_px=cp.nearer_window_px,
+        scale=cp.nearer_scale,
+        max_work_px=params.texture.max_work_width_px,
+        occlusion_tolerance_m=cp.occlusion_tolerance_m,
+        percentiles=cp.stretch_percentiles,
+    )
+    weigh_low_classes(nearer, surf.classes, cp)
+    return nearer
 
 
 def _check_classes(cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None) -> None:

@@ -335,6 +335,18 @@ class SuperpixelStats:
     energy: np.ndarray
 
 
+def superpixel_mean(values: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Each pixel's superpixel mean of ``values`` (H, W) float: (H, W) float32, for the node
+    energy of a superpixel from its mean raw change (``GraphCutParams.energy_of_mean``: the
+    paper assigns each superpixel "the average value over all the pixels", §3.4).
+    labels : (H, W) int superpixels 0..n−1 (:func:`superpixels`)."""
+    flat = np.ascontiguousarray(labels, dtype=np.int64).ravel()
+    n = int(flat.max()) + 1 if flat.size else 0
+    count = np.maximum(np.bincount(flat, minlength=n), 1)
+    sums = np.bincount(flat, np.asarray(values, np.float64).ravel(), minlength=n)
+    return (sums / count).astype(np.float32)[flat].reshape(np.shape(labels))
+
+
 def superpixel_stats(
     labels: np.ndarray,
     image: np.ndarray,
