@@ -33,8 +33,8 @@ from streetcd.config import DetectParams, scale_px
 from streetcd.detect.appearance import appearance_change
 from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
 from streetcd.detect.correlate import (
-    HoleDepths,
     Neighbour,
+    NeighbourView,
     envelope_levels,
     hole_depths,
     pair_lut,
@@ -62,7 +62,7 @@ from streetcd.errors import (
     EmptyViewError,
     InputError,
 )
-from streetcd.types import Intrinsics, PointCloud, Pose, View
+from streetcd.types import Intrinsics, PointCloud, View
 
 _DEFAULTS = DetectParams()  # frozen: one shared default instance
 log = logging.getLogger(__name__)
@@ -218,7 +218,7 @@ def detect_view(
         )
     lap("surface")
     used: list[Neighbour] = []
-    seen: list[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]] = []
+    seen: list[NeighbourView] = []
     names: list[str] = []
     view_lut = stretch_lut(image, params.correlate.stretch_percentiles)
     for nb_image, nb_view in neighbours:
@@ -376,7 +376,7 @@ def _texture(
     image: np.ndarray,
     surf: ViewSurface,
     local: View,
-    seen: Sequence[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]],
+    seen: Sequence[NeighbourView],
     params: DetectParams,
 ) -> np.ndarray:
     """The texture cue ``T_p`` (:mod:`streetcd.detect.texture`) of the view, on the pixels
@@ -404,7 +404,7 @@ def _nearer(
     image: np.ndarray,
     surf: ViewSurface,
     local: View,
-    seen: Sequence[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]],
+    seen: Sequence[NeighbourView],
     params: DetectParams,
 ) -> np.ndarray:
     """The nearer-depth test ``N_p`` (:mod:`streetcd.detect.sweep`), weighted by class like

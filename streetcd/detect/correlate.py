@@ -272,6 +272,11 @@ class HoleDepths:
     block: int
 
 
+# A neighbour as the window cues take it (texture, nearer depth): its image (h, w, 3) uint8
+# RGB, its old surface's depth (h, w) float32 metres, intrinsics, pose in the view's local
+# frame, and its surface holes (:func:`hole_depths`).
+NeighbourView = tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]
+
 _NO_HOLES = HoleDepths(np.full((1, 1), np.inf, np.float32), 1 << 30)  # every lookup: +inf
 
 

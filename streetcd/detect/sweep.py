@@ -37,8 +37,8 @@ import cv2
 import numpy as np
 
 from streetcd.detect.correlate import (
-    HoleDepths,
     Neighbour,
+    NeighbourView,
     camera_rays,
     color_distance,
     stretch_histogram,
@@ -52,7 +52,7 @@ def nearer_depth_change(
     depth_p: np.ndarray,
     intrinsics_p: Intrinsics,
     pose_p: Pose,
-    neighbours: Sequence[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]],
+    neighbours: Sequence[NeighbourView],
     *,
     fractions: Sequence[float],
     margin: float,

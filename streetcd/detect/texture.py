@@ -38,7 +38,12 @@ import numba
 import numpy as np
 
 from streetcd.config import TextureParams, scale_px
-from streetcd.detect.correlate import HoleDepths, Neighbour, camera_rays, warp_neighbour
+from streetcd.detect.correlate import (
+    Neighbour,
+    NeighbourView,
+    camera_rays,
+    warp_neighbour,
+)
 from streetcd.types import Intrinsics, Pose
 
 
@@ -83,7 +88,7 @@ def texture_change(
     depth_p: np.ndarray,
     intrinsics_p: Intrinsics,
     pose_p: Pose,
-    neighbours: Sequence[tuple[np.ndarray, np.ndarray, Intrinsics, Pose, HoleDepths | None]],
+    neighbours: Sequence[NeighbourView],
     params: TextureParams,
     occlusion_tolerance_m: float,
     registration_px: float = 0.0,
