@@ -209,16 +209,16 @@ def _waiting_for(plan: Plan, reach: float) -> dict[str, set[str]]:
             r["segment_id"]: (r["min_x"], r["min_y"], r["max_x"], r["max_y"])
             for r in idx.conn.execute("SELECT segment_id, min_x, min_y, max_x, max_y FROM segments")
         }
+    x, y, tonight = points[:, 0], points[:, 1], set(todo)
     out: dict[str, set[str]] = {}
     for s in plan.segments:
         box = boxes.get(s.id)
         if box is None:  # not in the index: wait for everything
             near = np.ones(len(points), bool)
         else:
-            x, y = points[:, 0], points[:, 1]
             near = (x >= box[0] - reach) & (x <= box[2] + reach)
             near &= (y >= box[1] - reach) & (y <= box[3] + reach)
-        out[s.id] = {todo[k] for k in np.unique(owner[near]).tolist()} | ({s.id} & set(todo))
+        out[s.id] = {todo[k] for k in np.unique(owner[near]).tolist()} | ({s.id} & tonight)
     return out
 
 

@@ -111,7 +111,6 @@ def rebuild_objects(
     segment_ids: Iterable[str],
     ground_class: GroundClass | None = None,
     min_region_fraction: float = MIN_REGION_FRACTION,
-    skip: Iterable[str] = (),
 ) -> int:
     """Rewrite the change objects of ``segment_ids`` from the index's regions, one
     transaction per segment. Returns how many objects they now hold.
@@ -121,8 +120,6 @@ def rebuild_objects(
     is a transient. Without it that test is skipped. min_region_fraction : the config's
     ``run.min_region_fraction``: an object none of whose regions covers that share of its
     image is a transient ("small"), as a view with no such region is not flagged.
-    skip : segments whose objects are known to be up to date (rebuilt since their inputs
-    last changed): not rebuilt, asked or near (a night's :class:`ObjectBuilder`'s).
     """
     asked = set(segment_ids)
     # A segment whose regions are linked with the asked ones' may own an object that takes
@@ -130,19 +127,8 @@ def rebuild_objects(
     near = {
         g.segment for seg in asked for g in _load_near(idx.conn, seg, _load_regions(idx.conn, seg))
     }
-    return rebuild_segments(idx, (asked | near) - set(skip), ground_class, min_region_fraction)
-
-
-def rebuild_segments(
-    idx: ChangeIndex,
-    segment_ids: Iterable[str],
-    ground_class: GroundClass | None = None,
-    min_region_fraction: float = MIN_REGION_FRACTION,
-) -> int:
-    """:func:`rebuild_objects` of exactly ``segment_ids``, not of the segments near them
-    (for a caller that rebuilds those itself). Returns how many objects they now hold."""
     total = 0
-    for seg in sorted(set(segment_ids)):
+    for seg in sorted(asked | near):
         with idx.transaction():
             total += _rebuild_segment(idx.conn, seg, ground_class, min_region_fraction)
     return total
