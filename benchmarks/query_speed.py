@@ -13,8 +13,9 @@ For each query form: the median of ``--repeat`` (5) runs of ``run_query`` in thi
 (the query itself: SQLite, decoding, formatting) and of ``streetcd query`` in a subprocess
 (what a user waits for: Python's start, the imports, the query, writing the answer to a
 pipe), and the answer's size. Two baselines are timed in the same run, at the same load:
-``python -c pass`` (the interpreter's start) and ``streetcd query --help`` (start, click and
-the query command's own imports, no index read). The load average before and after is
+``python -c pass`` (the interpreter's start), ``streetcd query --help`` (start and the query
+command's own imports, no index read) and ``streetcd --version`` (start and click, which
+every other command loads and ``query`` does not: streetcd/cli/entry.py). The load average before and after is
 printed: on a shared VM a subprocess time is only comparable within one run.
 
 It also lists which heavy libraries a real ``streetcd query`` imports (numpy, zarr, numba,
@@ -48,9 +49,10 @@ HEAVY = ("numpy", "zarr", "numba", "pyproj", "yaml", "scipy", "dask", "prefect",
 # Runs one `streetcd query` in this interpreter and names the heavy modules it loaded.
 PROBE = (
     "import sys\n"
-    "from streetcd.cli.main import cli\n"
+    "from streetcd.cli.entry import main\n"
+    "sys.argv = ['streetcd', *sys.argv[1:]]\n"
     "try:\n"
-    "    cli(sys.argv[1:], prog_name='streetcd')\n"
+    "    main()\n"
     "except SystemExit:\n"
     "    pass\n"
     f"print(','.join(m for m in {HEAVY!r} if m in sys.modules), file=sys.stderr)\n"
@@ -115,7 +117,7 @@ def streetcd_command() -> list[str]:
     script = BIN / "streetcd"
     if script.is_file():
         return [str(script)]
-    return [sys.executable, "-c", "from streetcd.cli.main import main; main()"]
+    return [sys.executable, "-c", "from streetcd.cli.entry import main; main()"]
 
 
 def time_index(index: Path, repeat: int) -> dict[str, Any]:
@@ -127,6 +129,7 @@ def time_index(index: Path, repeat: int) -> dict[str, Any]:
     for name, args in (
         ("(python -c pass)", [sys.executable, "-c", "pass"]),
         ("(streetcd query --help)", [*streetcd_command(), "query", "--help"]),
+        ("(streetcd --version: click)", [*streetcd_command(), "--version"]),
     ):
         sub, cpu, _ = median_s(command(args), repeat)
         rows.append(

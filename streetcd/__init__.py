@@ -17,7 +17,10 @@ docs/ARCHITECTURE.md shows the layers and where each job lives.
 from __future__ import annotations
 
 import importlib
-from typing import Any
+
+TYPE_CHECKING = False  # typing's, without importing typing (~18 ms here): mypy reads the name
+if TYPE_CHECKING:
+    from typing import Any
 
 __version__ = "0.1.0"
 

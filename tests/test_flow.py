@@ -217,7 +217,7 @@ def test_infra_files_parse_and_agree():
 def test_demo_runs_the_whole_workflow_and_lists_what_changed(prefect_api_url, tmp_path):
     from click.testing import CliRunner
 
-    from streetcd.cli.query import query
+    from streetcd.cli.main import query
     from streetcd.cli.run import demo
 
     out = CliRunner().invoke(

@@ -36,7 +36,7 @@ import sys
 import time
 import urllib.request
 from collections.abc import Iterator
-from contextlib import closing, contextmanager
+from contextlib import ExitStack, closing, contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -58,11 +58,17 @@ FAST_POLLS = {"PREFECT_WORKER_QUERY_SECONDS": "1"}
 FIRST_VIEW_MAX_S = 3.0
 
 
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def free_ports(n: int) -> list[int]:
+    """``n`` different TCP ports free on 127.0.0.1 now. All are held open until all are
+    chosen: one at a time, the system may hand out the same port twice, and a Prefect server
+    given the Dask dashboard's port never answers its health check (the likeliest cause of a
+    fresh-clone failure on 2026-11-27, "no answer in 180 s"; its server log was not kept,
+    which :func:`wait_http` now prints)."""
+    with ExitStack() as stack:
+        socks = [stack.enter_context(socket.socket()) for _ in range(n)]
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
 
 
 def compose_command(compose: dict, service: str) -> list[str]:
@@ -231,7 +237,9 @@ def _cmdline(p: psutil.Process) -> list[str]:
         return []
 
 
-def wait_http(url: str, timeout: float) -> None:
+def wait_http(url: str, timeout: float, run: Started, name: str) -> None:
+    """Until ``url`` answers 200; fails with process ``name``'s log tail if it ends first or
+    ``timeout`` s pass."""
     end = time.monotonic() + timeout
     while True:
         try:
@@ -240,7 +248,11 @@ def wait_http(url: str, timeout: float) -> None:
                     return
         except OSError:
             pass
-        assert time.monotonic() < end, f"{url}: no answer in {timeout} s"
+        code = run.procs[name].poll()
+        assert code is None, f"{name} ended ({code}):\n{run.log(name)[-3000:]}"
+        assert time.monotonic() < end, (
+            f"{url}: no answer in {timeout} s; {name}'s log:\n{run.log(name)[-3000:]}"
+        )
         time.sleep(1)
 
 
@@ -336,8 +348,9 @@ def test_infra_commands_start_and_run_the_deployment(small_city, tmp_path, reque
     assert 'ENTRYPOINT ["/opt/streetcd/infra/entrypoint.sh"]' in dockerfile
     (warm_up,) = re.findall(r"^RUN (infra/warm-numba\.sh)\b", dockerfile, flags=re.M)
 
-    ports = {"8786": free_port(), "8787": free_port(), "4200": free_port()}
-    helm_ports = {"8786": free_port(), "8787": free_port()}
+    chosen = free_ports(5)
+    ports = dict(zip(("8786", "8787", "4200"), chosen[:3], strict=True))
+    helm_ports = dict(zip(("8786", "8787"), chosen[3:], strict=True))
     api_url = f"http://127.0.0.1:{ports['4200']}/api"
     scheduler = f"tcp://127.0.0.1:{ports['8786']}"
     service_env = {  # the compose file's x-streetcd environment, local addresses
@@ -364,7 +377,7 @@ def test_infra_commands_start_and_run_the_deployment(small_city, tmp_path, reque
         )
         run.start("helm-scheduler", [ENTRYPOINT, *local(helm_scheduler_args(values), helm_ports)])
         # the deployment and the Prefect worker need the server only
-        wait_http(f"{api_url}/health", 180)
+        wait_http(f"{api_url}/health", 180, run, "prefect-server")
         run.start(
             "flow-worker", [ENTRYPOINT, *compose_command(compose, "flow-worker")], **service_env
         )

@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from test_segments import E0, N0, street
 
 from streetcd import classes as C
-from streetcd.cli.query import query as query_cmd
+from streetcd.cli.main import query as query_cmd
 from streetcd.cli.review import review as review_cmd
 from streetcd.errors import InputError, MissingInputError
 from streetcd.geometry.merge import link_regions, nearest_to_rays

@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 from test_segments import E0, N0, street
 
-from streetcd.cli.query import query as query_cmd
+from streetcd.cli.main import query as query_cmd
 from streetcd.errors import InputError
 from streetcd.run.segments import SegmentParams, plan_segments
 from streetcd.store.index import ChangeIndex

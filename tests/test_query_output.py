@@ -6,12 +6,13 @@ import json
 import subprocess
 import sys
 from dataclasses import asdict
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 from test_objects import BIN, BOX, POLE, night
 
-from streetcd.cli.query import query as query_cmd
+from streetcd.cli.main import query as query_cmd
 from streetcd.cli.query import run_query
 from streetcd.store import object_list, objects
 from streetcd.store.index import ChangeIndex
@@ -93,6 +94,29 @@ def test_view_labels_are_not_shared_between_views(two_nights):
     assert 99 not in same[1]["labels"]
 
 
+@pytest.mark.parametrize(
+    "args", [["--format", "json"], ["--limit", "5"], ["--bbox", "-1e9,-1e9,1e9,1e9"]]
+)
+def test_the_program_lists_objects_without_click_typing_or_dataclasses(two_nights, args):
+    # as a process a query was mostly imports: click (for every other command), typing and
+    # dataclasses (under the records and orjson) were ~80 of its ~190 ms (streetcd/cli/entry.py)
+    loaded, answer = loaded_by_a_query(
+        two_nights, args, ("click", "typing", "dataclasses", "orjson")
+    )
+    assert loaded == []
+    assert json.loads(answer) if "json" in args else answer.startswith("change objects:")
+
+
+def test_long_and_short_answers_are_the_same_json(two_nights, monkeypatch):
+    from streetcd.cli import query
+
+    short = run_query(two_nights, fmt="json", transients=True)
+    monkeypatch.setattr(query, "ORJSON_FROM", 0)  # orjson for any length
+    assert run_query(two_nights, fmt="json", transients=True) == short
+    nan = query.json_document({"crs": None}, "objects", [{"id": "a", "confidence": float("nan")}])
+    assert json.loads(nan)["objects"][0]["confidence"] is None  # null, never the invalid NaN
+
+
 def test_the_write_side_reexports_the_read_side():
     assert objects.list_objects is object_list.list_objects
     assert objects.REVIEW_STATUSES == object_list.REVIEW_STATUSES
@@ -104,18 +128,31 @@ def test_the_write_side_reexports_the_read_side():
     [["--format", "json"], ["--limit", "5"], ["--views"], ["--views", "--format", "json"]],
 )
 def test_a_real_query_loads_no_numpy_nor_the_detector(two_nights, args):
-    # half of a small query's time as a command was numpy and the rebuild's modules
+    # half of a small query's time as a command was numpy and the rebuild's modules; the
+    # click group (`python -m streetcd.cli.main query`) hands over to the same parser
+    for start in ("program", "click"):
+        loaded, answer = loaded_by_a_query(two_nights, args, HEAVY, start)
+        assert loaded == [] and answer.strip(), start
+
+
+def loaded_by_a_query(
+    index: Path, args: list[str], modules: tuple[str, ...], start: str = "program"
+) -> tuple[list[str], str]:
+    """Which of ``modules`` ``streetcd query --index INDEX ARGS`` loads in a fresh
+    interpreter, started as the installed program does (``program``: streetcd.cli.entry) or
+    through the click group (``click``); and its answer."""
+    run = {
+        "program": "sys.argv = ['streetcd', *sys.argv[1:]]\nfrom streetcd.cli.entry import main\n",
+        "click": "from streetcd.cli.main import cli\nmain = lambda: cli(sys.argv[1:], prog_name='streetcd')\n",
+    }[start]
     probe = (
-        "import sys\nfrom streetcd.cli.main import cli\ntry:\n"
-        "    cli(sys.argv[1:], prog_name='streetcd')\nexcept SystemExit as e:\n"
-        "    assert not e.code, e.code\n"
-        f"print(sorted(m for m in {HEAVY!r} if m in sys.modules), file=sys.stderr)\n"
+        f"import sys\n{run}try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+        f"print(sorted(m for m in {modules!r} if m in sys.modules), file=sys.stderr)\n"
     )
     out = subprocess.run(
-        [sys.executable, "-c", probe, "query", "--index", str(two_nights), *args],
+        [sys.executable, "-c", probe, "query", "--index", str(index), *args],
         capture_output=True,
         text=True,
         check=True,
     )
-    assert out.stderr.strip().splitlines()[-1] == "[]"
-    assert out.stdout.strip()  # it did answer
+    return json.loads(out.stderr.strip().splitlines()[-1].replace("'", '"')), out.stdout

@@ -1,12 +1,7 @@
-"""Thin command line over the library. Progress bars live here, never in the library."""
+"""Thin command line over the library. Progress bars live here, never in the library.
 
-import click
+Nothing here imports click: ``streetcd query`` runs without it (:mod:`streetcd.cli.query`).
+The options the click commands share are in :mod:`streetcd.cli.options`.
+"""
 
 INDEX_HELP = "The change index (SQLite) a run wrote."
-
-
-def index_option(help: str = INDEX_HELP):  # noqa: A002 - click's own keyword
-    """The ``--index PATH`` option of the commands that read a change index."""
-    return click.option(
-        "--index", "index", required=True, type=click.Path(dir_okay=False), help=help
-    )

@@ -17,7 +17,7 @@ COMMANDS = [
     ("streetcd.cli.check", "check"),
     ("streetcd.cli.run", "run"),
     ("streetcd.cli.run", "demo"),
-    ("streetcd.cli.query", "query"),
+    ("streetcd.cli.main", "query"),
     ("streetcd.cli.review", "review"),
     ("streetcd.cli.report", "report"),
     ("streetcd.cli.serve", "serve"),
@@ -50,9 +50,20 @@ def cli() -> None:
     """Find what changed on a street: an older MLS point cloud against newer posed images."""
 
 
-def main() -> None:
-    cli()
+@click.command(
+    "query",
+    add_help_option=False,
+    context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+)
+@click.pass_context
+def query(ctx: click.Context) -> None:
+    """List the change objects of a change index (or its flagged views, --views), filtered by
+    segment, box, date, score and review status. Opens the index read-only."""
+    # the options are argparse's (streetcd.cli.query): `streetcd query` runs without click
+    from streetcd.cli.query import main as query_main
+
+    ctx.exit(query_main(ctx.args))
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # `python -m streetcd.cli.main`; the installed program starts at
+    cli()  # streetcd.cli.entry, which runs `query` without click

@@ -9,6 +9,10 @@ The index is opened read-only (SQLite ``mode=ro``): a query never creates or cha
 and works on a read-only one. Numbers are checked before anything is read (a NaN, an
 infinity, a score outside [0, 1] is a one-line error).
 
+The command parses its arguments with argparse, not click, and ``streetcd`` hands it
+``query`` before importing click (:func:`streetcd.cli.main.main`): click's import was 45 of
+the ~190 ms a query took as a process, and a GIS script polls the index with it.
+
 JSON is written compact, one entry (object or view) a line, by orjson: the standard
 library's encoder with an indent took 3.7 of the 4.6 s that all 2,570 objects of a
 10,000-view index took. Only the command's own modules and SQLite load for a table or JSON
@@ -18,21 +22,21 @@ WGS 84 or a box in another CRS, pyogrio and numpy for a GeoPackage (docs/BENCHMA
 
 from __future__ import annotations
 
+import argparse
 import math
+import os
 import sys
-from collections.abc import Sequence
-from dataclasses import fields
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
-import click
-
-from streetcd.cli import index_option
+from streetcd.cli import INDEX_HELP
 from streetcd.errors import InputError, StreetcdError
-from streetcd.store.records import FlaggedRow, RegionRecord
 
-ROW_FIELDS = tuple(f.name for f in fields(FlaggedRow))
-REGION_FIELDS = tuple(f.name for f in fields(RegionRecord))
+TYPE_CHECKING = False  # typing's, without importing typing (~18 ms here): mypy reads the name
+if TYPE_CHECKING:
+    from typing import Any
+
+    from streetcd.store.records import FlaggedRow
 
 
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
@@ -63,6 +67,12 @@ def rows_as_json(rows: Sequence[FlaggedRow]) -> list[dict]:
     :class:`~streetcd.store.records.FlaggedRow`, its regions as dicts of every field of
     :class:`~streetcd.store.records.RegionRecord` (what ``dataclasses.asdict`` gives, which
     copied every value and took most of the 8,280 views' 9 s)."""
+    from dataclasses import fields
+
+    from streetcd.store.records import FlaggedRow, RegionRecord
+
+    row_fields = [f.name for f in fields(FlaggedRow)]
+    region_fields = [f.name for f in fields(RegionRecord)]
     out = []
     for r in rows:
         d: dict[str, Any] = {
@@ -71,21 +81,48 @@ def rows_as_json(rows: Sequence[FlaggedRow]) -> list[dict]:
             "segment": r.segment_id,
             "score": r.score,
         }
-        d.update((name, getattr(r, name)) for name in ROW_FIELDS)
-        d["regions"] = [{name: getattr(g, name) for name in REGION_FIELDS} for g in r.regions]
+        d.update((name, getattr(r, name)) for name in row_fields)
+        d["regions"] = [{name: getattr(g, name) for name in region_fields} for g in r.regions]
         out.append(d)
     return out
+
+
+# orjson writes a long answer ~3.5x faster than the standard library's C encoder (54 against
+# 190 ms for the 7 MB of a 10,000-view city's 2,450 objects) but takes ~22 ms to import (it
+# loads dataclasses and uuid): more than the standard library spends on a few hundred entries.
+ORJSON_FROM = 500
+
+
+def _json_encoder(n_entries: int) -> Callable[[object], bytes]:
+    """Compact JSON as bytes, non-ASCII kept: orjson for ``ORJSON_FROM`` entries or more,
+    the standard library below (orjson too for a value it refuses, a NaN: orjson writes
+    null where the standard library would write the invalid ``NaN``)."""
+    if n_entries >= ORJSON_FROM:
+        import orjson
+
+        return orjson.dumps
+    import json
+
+    def dumps(value: object) -> bytes:
+        try:
+            text = json.dumps(value, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+        except ValueError:
+            import orjson
+
+            return orjson.dumps(value)
+        return text.encode()
+
+    return dumps
 
 
 def json_document(head: dict, key: str, entries: Sequence[dict]) -> str:
     """``{**head, key: entries}`` as compact JSON, each entry on a line of its own (so that
     ``head`` and ``grep`` work on it, and a line is one entry). ``key`` must not be in ``head``."""
-    import orjson
-
-    opening = orjson.dumps(head)[:-1] + (b"," if head else b"") + orjson.dumps(key) + b":["
+    dumps = _json_encoder(len(entries))
+    opening = dumps(head)[:-1] + (b"," if head else b"") + dumps(key) + b":["
     if not entries:
         return (opening + b"]}").decode()
-    body = b",\n".join(orjson.dumps(e) for e in entries)
+    body = b",\n".join(dumps(e) for e in entries)
     return (opening + b"\n" + body + b"\n]}").decode()
 
 
@@ -165,20 +202,22 @@ def run_query(
     ``status`` a :func:`~streetcd.store.objects.list_objects` status (``awaiting`` …);
     transients are left out unless ``transients`` or ``status="transient"``.
     """
-    from streetcd.store.geojson import objects_to_geojson, to_geojson
     from streetcd.store.index import ChangeIndex
     from streetcd.store.object_list import list_objects
 
     _fraction("--min-score", min_score)
-    # issue 18: --sort, --bbox-crs, csv / gpkg, GeoJSON only with a CRS (streetcd.report.export)
-    from streetcd.report import export
-
+    # issue 18: --sort, --bbox-crs, csv / gpkg, GeoJSON only with a CRS (streetcd.report.export,
+    # loaded only where one of them is asked for: a plain query pays for SQLite alone)
     with ChangeIndex(index, readonly=True) as idx:
         crs = idx.crs
-    if bbox is not None:
-        bbox = export.bbox_in_index_crs(bbox, bbox_crs, crs)
+    if bbox is not None and bbox_crs is not None:
+        from streetcd.report.export import bbox_in_index_crs
+
+        bbox = bbox_in_index_crs(bbox, bbox_crs, crs)
     if fmt == "geojson":
-        export.check_geojson_crs(crs, native_crs)
+        from streetcd.report.export import check_geojson_crs
+
+        check_geojson_crs(crs, native_crs)
     if views and fmt in ("csv", "gpkg"):
         raise InputError(f"--format {fmt} lists change objects: leave out --views")
     if limit is not None and limit < 0:
@@ -201,14 +240,20 @@ def run_query(
             limit=limit if in_sql else None,
         )
         if sort is not None and not in_sql:
-            objects = export.sort_objects(objects, sort)
+            from streetcd.report.export import sort_objects
+
+            objects = sort_objects(objects, sort)
             objects = objects[:limit] if limit is not None else objects
         if fmt in ("csv", "gpkg"):
-            return export.export_objects(objects, crs, fmt, index, output)
+            from streetcd.report.export import export_objects
+
+            return export_objects(objects, crs, fmt, index, output)
         if fmt == "table":
             return objects_table(objects)
         if fmt == "json":
             return json_document({"crs": crs}, "objects", objects)
+        from streetcd.store.geojson import objects_to_geojson
+
         return _geojson_text(objects_to_geojson(objects, crs, wgs84=not native_crs))
     with ChangeIndex(index, readonly=True) as idx:
         rows = idx.query(
@@ -225,123 +270,166 @@ def run_query(
             return segments_table(rows, segments) + "\n\n" + rows_as_table(rows)
         if fmt == "json":
             return json_document({"crs": crs}, "views", rows_as_json(rows))
+        from streetcd.store.geojson import to_geojson
+
         return _geojson_text(to_geojson(rows, segments, crs, wgs84=not native_crs))
 
 
-@click.command("query")
-@index_option()
-@click.option(
-    "--views",
-    "views",
-    is_flag=True,
-    help="List flagged views (one entry per view) instead of change objects.",
-)
-@click.option("--segment", help="Only this segment id.")
-@click.option(
-    "--bbox",
-    help="minx,miny,maxx,maxy in the index's CRS: objects (views: a change region) meeting it.",
-)
-@click.option(
-    "--awaiting-review",
-    "awaiting",
-    is_flag=True,
-    help="Only change objects no one has reviewed yet (transients left out).",
-)
-@click.option(
-    "--status",
-    type=click.Choice(
-        ["awaiting", "transient", "confirmed", "false_alarm", "false-alarm", "fixed"]
-    ),
-    help="Only change objects with this review status (or awaiting review, or transients).",
-)
-@click.option("--kind", type=click.Choice(["added", "removed", "unknown"]), help="Only this kind.")
-@click.option("--transients", is_flag=True, help="Also list transients (cars, pedestrians).")
-@click.option("--limit", type=int, help="At most this many entries.")
-@click.option(
-    "--sort",
-    type=click.Choice(["score", "time"]),
-    help="score: most confident first; time: last seen (views: captured) latest first.",
-)
-@click.option(
-    "--bbox-crs",
-    help="The CRS of --bbox (EPSG:4326 for longitude/latitude); default the index's.",
-)
-@click.option(
-    "--since",
-    help="ISO date or date-time (UTC if no zone): objects last seen since then; with --views, "
-    "views whose image was taken since then (EXIF date; the detection date where it has none).",
-)
-@click.option(
-    "--detected-since", help="ISO date or date-time: views detected (published) since then."
-)
-@click.option(
-    "--min-score",
-    type=float,
-    help="Only objects with at least this confidence, or views scoring at least this (0–1).",
-)
-@click.option(
-    "--format",
-    "fmt",
-    type=click.Choice(["table", "json", "geojson", "csv", "gpkg"]),
-    default="table",
-    show_default=True,
-)
-@click.option(
-    "--native-crs",
-    is_flag=True,
-    help="GeoJSON in the index's CRS (legacy 'crs' member) instead of WGS84 longitude/latitude.",
-)
-@click.option("-o", "--output", type=click.Path(dir_okay=False), help="Write to this file.")
-def query(
-    index: str,
-    views: bool,
-    segment: str | None,
-    bbox: str | None,
-    since: str | None,
-    min_score: float | None,
-    detected_since: str | None,
-    fmt: str,
-    native_crs: bool,
-    output: str | None,
-    awaiting: bool,
-    status: str | None,
-    kind: str | None,
-    transients: bool,
-    limit: int | None,
-    sort: str | None,
-    bbox_crs: str | None,
-) -> None:
-    """List the change objects of a change index (or its flagged views, --views), filtered by
-    segment, box, date, score and review status. Opens the index read-only."""
-    if awaiting:
+USAGE = "Usage: streetcd query [OPTIONS]"
+STATUSES = ("awaiting", "transient", "confirmed", "false_alarm", "false-alarm", "fixed")
+FORMATS = ("table", "json", "geojson", "csv", "gpkg")
+
+
+class UsageError(Exception):
+    """A command line argparse cannot read: printed click's way (usage, then ``Error:``)."""
+
+
+def _formatter(prog: str) -> argparse.HelpFormatter:
+    """argparse's help formatter, told the terminal's width: left to itself it imports shutil
+    (5 ms) to ask, on every ``add_argument``."""
+    try:
+        width = os.get_terminal_size().columns
+    except OSError:  # not a terminal
+        width = 80
+    return argparse.HelpFormatter(prog, width=max(width - 2, 40))
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> Any:  # argparse's own prints and exits: we raise
+        raise UsageError(message)
+
+
+def parser() -> argparse.ArgumentParser:
+    """``streetcd query``'s options (``streetcd query --help`` prints them)."""
+    p = _Parser(
+        prog="streetcd query",
+        formatter_class=_formatter,
+        description="List the change objects of a change index (or its flagged views, "
+        "--views), filtered by segment, box, date, score and review status. Opens the index "
+        "read-only.",
+    )
+    p.add_argument("--index", required=True, metavar="PATH", help=INDEX_HELP)
+    p.add_argument(
+        "--views",
+        action="store_true",
+        help="List flagged views (one entry per view) instead of change objects.",
+    )
+    p.add_argument("--segment", help="Only this segment id.")
+    p.add_argument(
+        "--bbox",
+        metavar="MINX,MINY,MAXX,MAXY",
+        help="A box in the index's CRS: objects (views: a change region) meeting it.",
+    )
+    p.add_argument(
+        "--awaiting-review",
+        dest="awaiting",
+        action="store_true",
+        help="Only change objects no one has reviewed yet (transients left out).",
+    )
+    p.add_argument(
+        "--status",
+        choices=STATUSES,
+        help="Only change objects with this review status (or awaiting review, or transients).",
+    )
+    p.add_argument("--kind", choices=("added", "removed", "unknown"), help="Only this kind.")
+    p.add_argument(
+        "--transients", action="store_true", help="Also list transients (cars, pedestrians)."
+    )
+    p.add_argument("--limit", type=int, help="At most this many entries.")
+    p.add_argument(
+        "--sort",
+        choices=("score", "time"),
+        help="score: most confident first; time: last seen (views: captured) latest first.",
+    )
+    p.add_argument(
+        "--bbox-crs",
+        help="The CRS of --bbox (EPSG:4326 for longitude/latitude); default the index's.",
+    )
+    p.add_argument(
+        "--since",
+        help="ISO date or date-time (UTC if no zone): objects last seen since then; with "
+        "--views, views whose image was taken since then (EXIF date; the detection date "
+        "where it has none).",
+    )
+    p.add_argument(
+        "--detected-since", help="ISO date or date-time: views detected (published) since then."
+    )
+    p.add_argument(
+        "--min-score",
+        type=float,
+        help="Only objects with at least this confidence, or views scoring at least this (0-1).",
+    )
+    p.add_argument("--format", dest="fmt", choices=FORMATS, default="table", help="Default: table.")
+    p.add_argument(
+        "--native-crs",
+        action="store_true",
+        help="GeoJSON in the index's CRS (legacy 'crs' member) instead of WGS84 "
+        "longitude/latitude.",
+    )
+    p.add_argument("-o", "--output", metavar="FILE", help="Write to this file.")
+    return p
+
+
+def _values_attached(p: argparse.ArgumentParser, argv: Sequence[str]) -> list[str]:
+    """``argv`` with each option that takes a value joined to it (``--bbox=-73.9,40.7,…``):
+    argparse reads a value that starts with ``-`` as the next option unless it looks like
+    one plain negative number, and a box west of Greenwich or in a local frame is four.
+    click took the next word whatever it was; so does this."""
+    # argparse lists its actions only in this attribute; nargs None: takes one value
+    takes_value = {s for act in p._actions if act.nargs is None for s in act.option_strings}
+    out: list[str] = []
+    words = iter(argv)
+    for word in words:
+        value = next(words, None) if word in takes_value else None
+        out.append(word if value is None else f"{word}={value}")
+    return out
+
+
+def main(argv: Sequence[str]) -> int:
+    """``streetcd query ARGV``: prints the answer, returns the exit status (0; 1 for an
+    error in the input or the index, one ``Error:`` line; 2 for a command line it cannot
+    read, click's way)."""
+    p = parser()
+    try:
+        a = p.parse_args(_values_attached(p, argv))
+    except UsageError as exc:
+        print(f"{USAGE}\nTry 'streetcd query --help' for help.\n\nError: {exc}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0)
+    status = a.status
+    if a.awaiting:
         if status not in (None, "awaiting"):
-            raise click.ClickException("--awaiting-review and --status are exclusive")
+            print("Error: --awaiting-review and --status are exclusive", file=sys.stderr)
+            return 1
         status = "awaiting"
     try:
         text = run_query(
-            index,
-            views=views,
+            a.index,
+            views=a.views,
             status=status,
-            kind=kind,
-            transients=transients,
-            limit=limit,
-            sort=sort,
-            bbox_crs=bbox_crs,
-            output=output,
-            segment=segment,
-            bbox=_bbox(bbox),
-            since=since,
-            min_score=min_score,
-            fmt=fmt,
-            native_crs=native_crs,
-            detected_since=detected_since,
+            kind=a.kind,
+            transients=a.transients,
+            limit=a.limit,
+            sort=a.sort,
+            bbox_crs=a.bbox_crs,
+            output=a.output,
+            segment=a.segment,
+            bbox=_bbox(a.bbox),
+            since=a.since,
+            min_score=a.min_score,
+            fmt=a.fmt,
+            native_crs=a.native_crs,
+            detected_since=a.detected_since,
         )
     except StreetcdError as exc:
-        raise click.ClickException(str(exc)) from None
-    if fmt == "gpkg":
-        click.echo(text, err=True)
-    elif output:
-        Path(output).write_text(text + "\n", encoding="utf-8")
-        click.echo(f"wrote {output}", err=True)
+        print(f"Error: {exc}", file=sys.stderr)
+        return 1
+    if a.fmt == "gpkg":
+        print(text, file=sys.stderr)
+    elif a.output:
+        Path(a.output).write_text(text + "\n", encoding="utf-8")
+        print(f"wrote {a.output}", file=sys.stderr)
     else:
         sys.stdout.write(text + "\n")
+    return 0

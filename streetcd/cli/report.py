@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from streetcd.cli import index_option
+from streetcd.cli.options import index_option
 from streetcd.errors import StreetcdError
 
 

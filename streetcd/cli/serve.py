@@ -7,7 +7,7 @@ import signal
 
 import click
 
-from streetcd.cli import index_option
+from streetcd.cli.options import index_option
 from streetcd.errors import StreetcdError
 
 

@@ -368,7 +368,7 @@ def _colmap_pose(q_t: list[float], where: str, name: str) -> Pose:
     """The pose of COLMAP's (QW, QX, QY, QZ, TX, TY, TZ); InputError naming ``where``."""
     if not all(math.isfinite(v) for v in q_t):
         raise InputError(f"{where}: field 'QW..TZ' of {name!r} is not finite: {q_t}")
-    norm = float(np.linalg.norm(q_t[:4]))
+    norm = math.hypot(*q_t[:4])  # scaled: no overflow (and no warning) for |q| near 1e308
     if not 1e-6 < norm < 1e150:
         raise InputError(f"{where}: field 'QW..QZ' of {name!r} is not a rotation (|q| = {norm})")
     return _pose(where, quaternion_to_rotation(np.array(q_t[:4])), np.array(q_t[4:]))
@@ -902,7 +902,7 @@ def write_metashape_opk(path: str | Path, views: Iterable[View], crs: str | None
 def angle_axis_to_rotation(r: np.ndarray) -> np.ndarray:
     """(3,) angle-axis vector (radians, axis × angle) → (3, 3) rotation (Rodrigues)."""
     r = np.asarray(r, dtype=np.float64)
-    angle = float(np.linalg.norm(r))
+    angle = math.hypot(*r)  # scaled: no overflow warning on a huge (hostile) vector
     if angle < 1e-12:
         return np.eye(3)
     k = r / angle

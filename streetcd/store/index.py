@@ -37,10 +37,17 @@ import sqlite3
 from collections.abc import Iterable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
 
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError
-from streetcd.store.records import FlaggedRow, RegionRecord, SegmentRow, ViewRecord
+
+# The records (dataclasses, and inspect under them) load where a row is made, typing not at
+# all (typing's TYPE_CHECKING without the import; mypy reads the name): `streetcd query`
+# lists change objects without either, ~35 ms of a ~100 ms command (docs/BENCHMARKS.md).
+TYPE_CHECKING = False
+if TYPE_CHECKING:
+    from typing import Any
+
+    from streetcd.store.records import FlaggedRow, RegionRecord, SegmentRow, ViewRecord
 
 SCHEMA_VERSION = "4"
 # ChangeIndex.query's orders, by its ``sort``: time is the capture's (else the detection's)
@@ -509,6 +516,8 @@ class ChangeIndex:
         return {k: tuple(v) for k, v in out.items()}
 
     def _row(self, r: sqlite3.Row, regions: tuple[RegionRecord, ...]) -> FlaggedRow:
+        from streetcd.store.records import FlaggedRow
+
         center = None if r["center_x"] is None else (r["center_x"], r["center_y"], r["center_z"])
         return FlaggedRow(
             r["view"],
@@ -546,6 +555,8 @@ class ChangeIndex:
             args += [mnx, mxx, mny, mxy]
         sql = "SELECT * FROM segments s" + (" WHERE " + " AND ".join(where) if where else "")
         rows = self.conn.execute(sql + " ORDER BY s.segment_id", args).fetchall()
+        from streetcd.store.records import SegmentRow
+
         return [
             SegmentRow(
                 r["segment_id"],
@@ -578,6 +589,8 @@ class ChangeIndex:
 
 def _region(g: sqlite3.Row) -> RegionRecord:
     """A ``regions`` row as a record (x/y/z triples None where not located)."""
+
+    from streetcd.store.records import RegionRecord
 
     def xyz(a: str, b: str, c: str) -> tuple[float, float, float] | None:
         return None if g[a] is None else (g[a], g[b], g[c])

@@ -14,11 +14,14 @@ import math
 import sqlite3
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from streetcd import classes as C
 from streetcd.errors import InputError
 from streetcd.store.index import ChangeIndex, _check_bbox, limit_clause, parse_since
+
+TYPE_CHECKING = False  # typing's, without importing typing (~18 ms here): mypy reads the name
+if TYPE_CHECKING:
+    from typing import Any
 
 REVIEW_STATUSES = ("confirmed", "false_alarm", "fixed")
 LIST_STATUSES = ("awaiting", "transient", *REVIEW_STATUSES)
