@@ -724,6 +724,7 @@ def _fuzz_tests():
     # warning) and a name given a folder, "IM/G_0001.jpg" (inside the images folder: accepted)
     @example(kind="colmap_images_bin", at=0.125, cut=4, junk=b"\x00\x00\x00`")
     @example(kind="opk_csv", at=0.5, cut=0, junk=b"/")
+    @example(kind="metashape", at=0.99609375, cut=3, junk=b"1e200")  # r33 ~1e200: r rᵀ overflowed
     def a_valid_file_damaged(kind: str, at: float, cut: int, junk: bytes) -> None:
         def damage(data: bytes) -> bytes:
             k = int(at * len(data))
@@ -1664,3 +1665,18 @@ def _las_fuzz_test():
 
 
 test_fuzz_las_header = _las_fuzz_test()
+
+
+def test_a_camera_beyond_any_coordinate_system_is_one_line(tmp_path):
+    # finite coordinates near 1e308 overflowed t = -R C (a warning, then a pose error that
+    # named no field): now the row fails alone, naming its line and the fields
+    poses = _valid("opk_csv", tmp_path)
+    row = "IMG_0001.jpg,372004,143000,1.6000000000000001,90,"
+    text = poses.read_text().replace(row, "IMG_0001.jpg,1e308,1.7e308,1.7e308,45,")
+    poses.write_text(text)
+    bad: list[tuple[str, str]] = []
+    views = read_poses(poses, tmp_path / "images", bad_rows=bad).views
+    assert [v.name for v in views] == ["IMG_0000.jpg", "IMG_0002.jpg"]
+    ((name, message),) = bad
+    assert name == "IMG_0001.jpg" and one_line(message)
+    assert "poses.csv:4" in message and "'x, y, z'" in message

@@ -178,6 +178,17 @@ def _pose(where: str, R: np.ndarray, t: np.ndarray) -> Pose:
         raise InputError(f"{where}: {exc}") from None
 
 
+def _pose_at(where: str, R: np.ndarray, center: np.ndarray) -> Pose:
+    """The pose of a camera at ``center`` (world, metres) turned by world→camera ``R``;
+    InputError naming ``where`` and the centre when ``t = -R C`` is not finite (finite
+    coordinates near 1e308 overflow it: a fuzzed file, no survey)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        t = -R @ np.asarray(center, dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        raise InputError(f"{where}: fields 'x, y, z' = {np.asarray(center).tolist()} are too large")
+    return _pose(where, R, t)
+
+
 def _intrinsics_from_colmap(model: str, width: int, height: int, p: dict[str, float]) -> Intrinsics:
     fx = p.get("fx", p.get("f"))
     fy = p.get("fy", p.get("f"))
@@ -696,7 +707,7 @@ def _opk_row(
     image = Path(image_dir) / name if image_dir is not None else None
     time = (row.get("time") or "").strip()
     t = _finite(time, path, number, "time") if time else float(order)
-    return View(name, intr, Pose.from_center(R, center), image, t)
+    return View(name, intr, _pose_at(f"{path}:{number}", R, center), image, t)
 
 
 # --- Pix4D and Metashape OPK exports ---------------------------------------------------
@@ -745,7 +756,7 @@ def _opk_view(
     _checked_name(name, path, line)
     num = {f: _finite(values.get(f, ""), path, line, f) for f in PIX4D_HEADER[1:]}
     R = opk_to_rotation(num["omega"], num["phi"], num["kappa"])
-    pose = _pose(where, R, -R @ np.array([num["x"], num["y"], num["z"]]))
+    pose = _pose_at(where, R, np.array([num["x"], num["y"], num["z"]]))
     image = Path(image_dir) / name if image_dir is not None else None
     return View(name, intr, pose, image, float(order))
 
@@ -872,7 +883,12 @@ def _check_metashape_matrix(row: dict[str, str], view: View, path: Path, number:
     r = np.array([_finite(row[k], path, number, k) for k in _METASHAPE_R]).reshape(3, 3)
     M = (np.diag([1.0, -1.0, -1.0]) @ view.pose.R).T  # photogrammetric camera→world
     if not (np.allclose(r, M, atol=1e-4) or np.allclose(r, M.T, atol=1e-4)):
-        is_rotation = np.allclose(r @ r.T, np.eye(3), atol=1e-4) and np.linalg.det(r) > 0
+        # a rotation's entries lie in [-1, 1]: tested first, r rᵀ cannot overflow
+        is_rotation = (
+            bool((np.abs(r) <= 1.0 + 1e-4).all())
+            and np.allclose(r @ r.T, np.eye(3), atol=1e-4)
+            and np.linalg.det(r) > 0
+        )
         why = "is not the rotation of omega/phi/kappa" if is_rotation else "is not a rotation"
         raise InputError(f"{path}:{number}: field 'r11..r33' {why}: {r.round(6).tolist()}")
 
