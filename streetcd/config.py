@@ -107,6 +107,10 @@ class SurfaceParams:
     # never widen edges: max_edge_px already suits a mobile-mapping cloud (≤ 0.03 m), where a
     # longer edge only bridges a real gap; 0 = every class
     spacing_edge_min_spacing_m: float = 0.0
+    # our addition (issue 16): points whose class is measured sparser than this (metres)
+    # never widen edges: a dense mobile-mapping cloud seen from near (a pedestrian's camera,
+    # 2-5 m from the objects) widens, a sparse automotive LiDAR keeps the fixed limit; 0 = no cut
+    spacing_edge_max_spacing_m: float = 0.0
     # our addition (issue 16): roles whose points may widen edges (streetcd.classes codes;
     # a triangle widens only if all its vertices do); () = every role
     spacing_edge_classes: tuple[int, ...] = ()
@@ -119,6 +123,7 @@ class SurfaceParams:
             "spacing_jump_factor",
             "spacing_edge_min_depth_m",
             "spacing_edge_min_spacing_m",
+            "spacing_edge_max_spacing_m",
         ):
             value = getattr(self, name)
             _check(math.isfinite(value) and value >= 0, name, value, ">= 0")
@@ -561,6 +566,7 @@ class Config:
         for key, off in (
             ("spacing_edge_min_depth_m", 0.0),
             ("spacing_edge_min_spacing_m", 0.0),
+            ("spacing_edge_max_spacing_m", 0.0),
             ("spacing_edge_classes", []),
         ):
             if detect["surface"][key] == off:  # no limit on the widening: older hashes hold

@@ -192,7 +192,14 @@ def test_edge_widening_leaves_near_vertices_and_other_roles_alone():
     assert view_surface(uv, flat, cls, (H, W), at_floor, spacing=half).valid.sum() == 201 * 201
     dense = replace(widened, spacing_edge_min_spacing_m=0.6)
     assert not view_surface(uv, flat, cls, (H, W), dense, spacing=half).valid.any()
+    # the other way round: a cut above the measured spacing widens, one below it does not
+    upto = replace(widened, spacing_edge_max_spacing_m=0.5)
+    assert view_surface(uv, flat, cls, (H, W), upto, spacing=half).valid.sum() == 201 * 201
+    sparse = replace(widened, spacing_edge_max_spacing_m=0.4)
+    assert not view_surface(uv, flat, cls, (H, W), sparse, spacing=half).valid.any()
     with pytest.raises(InputError, match="spacing_edge_min_depth_m"):
         SurfaceParams(spacing_edge_min_depth_m=-1.0)
+    with pytest.raises(InputError, match="spacing_edge_max_spacing_m"):
+        SurfaceParams(spacing_edge_max_spacing_m=float("nan"))
     with pytest.raises(InputError, match="spacing_edge_classes"):
         SurfaceParams(spacing_edge_classes=(2, 300))

@@ -300,8 +300,9 @@ def _spacing_limits(
 
     The edge limit is 0 (no widening: a triangle with such a vertex keeps the fixed limit) at
     points nearer than ``spacing_edge_min_depth_m``, at points whose spacing is below
-    ``spacing_edge_min_spacing_m`` and, when ``spacing_edge_classes`` is set, at points of
-    other roles (``classes`` (N,) uint8; None: every point may widen)."""
+    ``spacing_edge_min_spacing_m`` or above ``spacing_edge_max_spacing_m`` (when > 0) and,
+    when ``spacing_edge_classes`` is set, at points of other roles (``classes`` (N,) uint8;
+    None: every point may widen)."""
     none = np.empty(0, np.float64)
     if spacing is None:
         return none, none
@@ -316,6 +317,9 @@ def _spacing_limits(
         edge[depth < params.spacing_edge_min_depth_m] = 0.0
         # a class as dense as mobile mapping keeps the configured limit (it suits it)
         edge[s < params.spacing_edge_min_spacing_m] = 0.0
+        # ... or, the other way round, a sparse class does (its long edges bridge real gaps)
+        if params.spacing_edge_max_spacing_m > 0:
+            edge[s > params.spacing_edge_max_spacing_m] = 0.0
         if params.spacing_edge_classes and classes is not None:
             roles = np.asarray(params.spacing_edge_classes, dtype=np.uint8)
             edge[~np.isin(classes, roles)] = 0.0
