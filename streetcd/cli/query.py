@@ -10,12 +10,13 @@ and works on a read-only one. Numbers are checked before anything is read (a NaN
 infinity, a score outside [0, 1] is a one-line error).
 
 The command parses its arguments with argparse, not click, and ``streetcd`` hands it
-``query`` before importing click (:func:`streetcd.cli.main.main`): click's import was 45 of
-the ~190 ms a query took as a process, and a GIS script polls the index with it.
+``query`` before importing click (:func:`streetcd.cli.entry.main`): click's import was 45 of
+the ~150 ms a short query took as a process, and a GIS script polls the index with it.
 
-JSON is written compact, one entry (object or view) a line, by orjson: the standard
-library's encoder with an indent took 3.7 of the 4.6 s that all 2,570 objects of a
-10,000-view index took. Only the command's own modules and SQLite load for a table or JSON
+JSON is written compact, one entry (object or view) a line (the standard library's encoder
+with an indent took 3.7 of the 4.6 s that all 2,570 objects of a 10,000-view index took):
+by orjson for long answers, by the standard library's C encoder for short ones
+(:data:`ORJSON_FROM`). Only the command's own modules and SQLite load for a table or JSON
 (no numpy: it was half of a small query's time as a command); pyproj loads for GeoJSON in
 WGS 84 or a box in another CRS, pyogrio and numpy for a GeoPackage (docs/BENCHMARKS.md).
 """
