@@ -498,12 +498,16 @@ class ChangeIndex:
         )
         sql += limit_clause(limit)
         rows = self.conn.execute(sql, args).fetchall()
+        from streetcd.store.records import FlaggedRow  # once a query, not once a row
+
         regions = self._regions_of([r["id"] for r in rows])
-        return [self._row(r, regions.get(r["id"], ())) for r in rows]
+        return [_flagged_row(FlaggedRow, r, regions.get(r["id"], ())) for r in rows]
 
     def _regions_of(self, ids: Sequence[int]) -> dict[int, tuple[RegionRecord, ...]]:
         """The regions of flagged rows ``ids``, by row id, each in label order: one query per
         500 rows (one per row was most of a big query's time)."""
+        from streetcd.store.records import RegionRecord  # once, not once a region
+
         out: dict[int, list[RegionRecord]] = {}
         for k in range(0, len(ids), 500):
             chunk = ids[k : k + 500]
@@ -512,27 +516,8 @@ class ChangeIndex:
                 " ORDER BY flagged_id, label",
                 chunk,
             ):
-                out.setdefault(g["flagged_id"], []).append(_region(g))
+                out.setdefault(g["flagged_id"], []).append(_region(RegionRecord, g))
         return {k: tuple(v) for k, v in out.items()}
-
-    def _row(self, r: sqlite3.Row, regions: tuple[RegionRecord, ...]) -> FlaggedRow:
-        from streetcd.store.records import FlaggedRow
-
-        center = None if r["center_x"] is None else (r["center_x"], r["center_y"], r["center_z"])
-        return FlaggedRow(
-            r["view"],
-            r["segment_id"],
-            r["score"],
-            r["changed_fraction"],
-            r["n_regions"],
-            r["mask_path"],
-            r["overlay_path"],
-            r["detected_at"],
-            center,
-            regions,
-            r["captured_at"],
-            r["image"],
-        )
 
     def segments(
         self,
@@ -587,15 +572,36 @@ class ChangeIndex:
         }
 
 
-def _region(g: sqlite3.Row) -> RegionRecord:
-    """A ``regions`` row as a record (x/y/z triples None where not located)."""
+def _flagged_row(
+    record: type[FlaggedRow], r: sqlite3.Row, regions: tuple[RegionRecord, ...]
+) -> FlaggedRow:
+    """A ``flagged`` ⋈ ``views`` row as ``record`` (:class:`FlaggedRow`, passed in: the
+    records load with the first query, not with this module)."""
+    center = None if r["center_x"] is None else (r["center_x"], r["center_y"], r["center_z"])
+    return record(
+        r["view"],
+        r["segment_id"],
+        r["score"],
+        r["changed_fraction"],
+        r["n_regions"],
+        r["mask_path"],
+        r["overlay_path"],
+        r["detected_at"],
+        center,
+        regions,
+        r["captured_at"],
+        r["image"],
+    )
 
-    from streetcd.store.records import RegionRecord
+
+def _region(record: type[RegionRecord], g: sqlite3.Row) -> RegionRecord:
+    """A ``regions`` row as ``record`` (:class:`RegionRecord`), x/y/z triples None where not
+    located."""
 
     def xyz(a: str, b: str, c: str) -> tuple[float, float, float] | None:
         return None if g[a] is None else (g[a], g[b], g[c])
 
-    return RegionRecord(
+    return record(
         g["label"],
         g["pixels"],
         g["score"],
