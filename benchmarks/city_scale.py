@@ -30,7 +30,7 @@ shared and the overhead says more about the neighbours (load averages are printe
 ``streetcd query`` is timed on the run's index, median of 5, as a subprocess (what a user
 waits for, Python's start and imports included) and in-process (``run_query``, the query
 itself): all objects as JSON, the first 100 objects, flagged views ``--views --limit 100``,
-and a ``--bbox`` of 200 m around the middle of the city.
+and a ``--bbox`` of 200 m around the middle change of the city (query_speed.middle_bbox).
 """
 
 from __future__ import annotations
@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from query_speed import middle_bbox  # noqa: E402  (a box around a change, not between copies)
 from throughput import load, warm_up  # noqa: E402  (the sibling benchmark's helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -308,16 +309,6 @@ def night(paths: dict[str, str], out: Path, workers: int, batch_size: int) -> di
 
 
 # --- queries -------------------------------------------------------------------------------
-
-
-def middle_bbox(index: Path, half_m: float = 100.0) -> tuple[float, float, float, float]:
-    """A ``2·half_m`` square box around the middle of the views' centres."""
-    with closing(sqlite3.connect(f"file:{index}?mode=ro", uri=True)) as db:
-        x0, x1, y0, y1 = db.execute(
-            "SELECT min(center_x), max(center_x), min(center_y), max(center_y) FROM views"
-        ).fetchone()
-    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-    return (cx - half_m, cy - half_m, cx + half_m, cy + half_m)
 
 
 def query_times(index: Path, repeat: int = 5) -> list[dict[str, Any]]:
