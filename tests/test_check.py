@@ -203,3 +203,40 @@ def test_streetcd_check_on_a_missing_store_answers_in_under_two_seconds(small_ci
     assert "Traceback" not in done.stdout + done.stderr
     cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     assert cpu_s < 2.0, f"{cpu_s:.2f} s of CPU"
+
+
+def test_the_run_plans_from_what_the_check_read(small_city, tmp_path, monkeypatch):
+    """The pose file is read once a night: the plan takes the check's listing (reading a
+    city's pose file twice cost seconds), and reads again when given another folder's."""
+    import streetcd.run.plan as plan_module
+
+    reads = []
+    real = plan_module.read_poses
+    monkeypatch.setattr(
+        plan_module, "read_poses", lambda *a, **k: reads.append(a[0]) or real(*a, **k)
+    )
+    index = tmp_path / "index.sqlite"
+    report = check_inputs(small_city.images, small_city.poses, small_city.store, index)
+    assert len(reads) == 1 and report.listing is not None
+    out = tmp_path / "out"
+    shared = plan_module.plan_run(
+        small_city.images, small_city.poses, small_city.store, index, out,
+        listing=report.listing,
+    )  # fmt: skip
+    assert len(reads) == 1
+    alone = plan_module.plan_run(small_city.images, small_city.poses, small_city.store, index, out)
+    assert len(reads) == 2
+
+    def tasks(plan):
+        return [
+            (t.key, t.input_hash, [n.name for n in t.neighbours])
+            for b in plan.batches
+            for t in b.tasks
+        ]
+
+    assert tasks(shared) == tasks(alone) and len(tasks(alone)) == len(report.image_names)
+    other = copy_images(small_city, tmp_path / "images")
+    plan_module.plan_run(
+        other, small_city.poses, small_city.store, index, out, listing=report.listing
+    )
+    assert len(reads) == 3  # not this folder's listing: read again

@@ -90,3 +90,27 @@ def test_a_camera_that_did_not_move_is_never_a_neighbour():
     # overlap alone (the paper's choice) takes the camera that did not move first
     paper = select_neighbours(p, [*views, stopped, crept], n=3, min_parallax_px=0.0)
     assert paper[0].name == "img_03_later.jpg"
+
+
+def test_neighbours_of_many_views_at_once_equal_one_view_at_a_time():
+    """The planner's batched choice (blocks of views, candidate lists of unequal length
+    padded) is the per-view choice, distortion and other image sizes included."""
+    from dataclasses import replace
+
+    from streetcd.geometry.neighbours import select_neighbours_many
+
+    views = strip(9, 1.5) + [view("back.jpg", 4.0, heading=-1.0), view("far.jpg", 400.0)]
+    bent = Intrinsics(640, 360, 420.0, 430.0, 319.5, 179.5, (-0.2, 0.05, 0.001, -0.002, 0.0))
+    views.append(replace(view("bent.jpg", 2.5), intrinsics=bent))
+    rng = np.random.default_rng(1)
+    candidates = [[views[j] for j in rng.permutation(len(views))[: k % 7]] for k in range(12)]
+    candidates[0] = views  # itself among them
+    for n in (1, 3):
+        one_by_one = [select_neighbours(v, c, n=n) for v, c in zip(views, candidates, strict=True)]
+        assert select_neighbours_many(views, candidates, n=n) == one_by_one
+        from streetcd.geometry import neighbours
+
+        small = neighbours.overlaps_many(views, candidates, block=5)
+        assert [s.tolist() for s in small] == [
+            neighbours.overlaps(v, c).tolist() for v, c in zip(views, candidates, strict=True)
+        ]

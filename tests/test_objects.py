@@ -545,3 +545,51 @@ def test_two_parts_of_one_view_wait_their_turn_among_the_links():
     assert labels.tolist() == [0, 1, 0, 1]
     # Without the other view's regions the two parts are one object.
     assert link_regions(c[:2], lo[:2], hi[:2], view_ids=np.array([0, 0])).tolist() == [0, 0]
+
+
+def test_lines_of_sight_meet_pair_by_pair_as_in_all_pairs_at_once():
+    """merge._rays_meet (all pairs in numpy, in chunks) against the pair-at-a-time reading
+    of link_regions' rule: closest points of the two lines, in front of both cameras and not
+    past either surface, within the gap, at a point both regions cover."""
+    from streetcd.geometry.merge import _rays_meet, covers
+
+    rng = np.random.default_rng(7)
+    n = 60
+    cameras = np.column_stack([rng.uniform(0, 20, n), np.zeros(n), np.full(n, 1.6)])
+    cameras[5] = np.nan  # a region without a camera meets nothing
+    centroids = np.column_stack(
+        [rng.uniform(0, 20, n), rng.uniform(6, 12, n), rng.uniform(0, 4, n)]
+    )
+    half = rng.uniform(0.2, 3.0, (n, 3))
+    lo, hi = centroids - half, centroids + half
+    views = rng.integers(0, 8, n)
+    margin, max_gap = 0.5, 0.8
+    expected = np.full((n, n), np.inf)
+    for i in range(n):
+        for j in range(i + 1, n):
+            if views[i] == views[j] or not np.isfinite(cameras[[i, j]]).all():
+                continue
+            u = [
+                (centroids[k] - cameras[k]) / np.linalg.norm(centroids[k] - cameras[k])
+                for k in (i, j)
+            ]
+            w = cameras[i] - cameras[j]
+            b = u[0] @ u[1]
+            if 1 - b * b < 1e-4:
+                continue
+            s = (b * (u[1] @ w) - u[0] @ w) / (1 - b * b)
+            t = (u[1] @ w - b * (u[0] @ w)) / (1 - b * b)
+            length = [np.linalg.norm(centroids[k] - cameras[k]) for k in (i, j)]
+            if not (0.5 < s <= length[0] + margin and 0.5 < t <= length[1] + margin):
+                continue
+            p, q = cameras[i] + s * u[0], cameras[j] + t * u[1]
+            x = (p + q) / 2
+            if np.linalg.norm(p - q) <= max_gap and all(
+                covers(x, cameras[k], centroids[k], lo[k], hi[k], margin) for k in (i, j)
+            ):
+                expected[i, j] = expected[j, i] = np.linalg.norm(p - q)
+    for chunk in (7, 1 << 16):
+        got = _rays_meet(centroids, lo, hi, cameras, views, margin, max_gap, chunk=chunk)
+        assert np.array_equal(np.isfinite(got), np.isfinite(expected))
+        assert np.allclose(got[np.isfinite(got)], expected[np.isfinite(expected)], rtol=1e-12)
+    assert np.isfinite(expected).sum() >= 10  # the rule is exercised, not only inf

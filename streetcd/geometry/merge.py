@@ -163,41 +163,81 @@ def _rays_meet(
     view_ids: np.ndarray,
     margin_m: float,
     max_gap_m: float,
+    chunk: int = 1 << 16,
 ) -> np.ndarray:
     """(N, N) float: for pairs of regions of different views whose lines of sight meet
-    (see :func:`link_regions`), the gap between the lines there (metres); inf otherwise."""
+    (see :func:`link_regions`), the gap between the lines there (metres); inf otherwise.
+
+    All pairs at once, ``chunk`` pairs per numpy call (a pair at a time in Python was a
+    quarter of a city night's change-object building, docs/BENCHMARKS.md)."""
     n = len(centroids)
     out = np.full((n, n), np.inf)
     has = np.all(np.isfinite(cameras), axis=1)
     d = centroids - cameras
     length = np.linalg.norm(d, axis=1)
     u = d / np.where(length > 0, length, 1.0)[:, None]
-    for i in range(n):
-        if not has[i]:
-            continue
-        for j in range(i + 1, n):
-            if not has[j] or view_ids[i] == view_ids[j]:
-                continue
-            # Closest points of the two lines c_i + s u_i and c_j + t u_j.
-            w = cameras[i] - cameras[j]
-            b = float(u[i] @ u[j])
-            den = 1.0 - b * b
-            if den < 1e-4:  # (nearly) parallel: no depth from this pair
-                continue
-            s = (b * float(u[j] @ w) - float(u[i] @ w)) / den
-            t = (float(u[j] @ w) - b * float(u[i] @ w)) / den
-            if not (0.5 < s <= length[i] + margin_m and 0.5 < t <= length[j] + margin_m):
-                continue
-            pi, pj = cameras[i] + s * u[i], cameras[j] + t * u[j]
-            gap = float(np.linalg.norm(pi - pj))
-            if gap > max_gap_m:
-                continue
-            x = (pi + pj) / 2
-            if covers(x, cameras[i], centroids[i], lo[i], hi[i], margin_m) and covers(
-                x, cameras[j], centroids[j], lo[j], hi[j], margin_m
-            ):
-                out[i, j] = out[j, i] = gap
+    first, second = np.triu_indices(n, k=1)
+    keep = has[first] & has[second] & (view_ids[first] != view_ids[second])
+    first, second = first[keep], second[keep]
+    for start in range(0, len(first), chunk):
+        i, j = first[start : start + chunk], second[start : start + chunk]
+        gap = _pair_gaps(i, j, centroids, lo, hi, cameras, u, length, margin_m, max_gap_m)
+        out[i, j] = out[j, i] = gap
     return out
+
+
+def _pair_gaps(
+    i: np.ndarray,
+    j: np.ndarray,
+    centroids: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    cameras: np.ndarray,
+    u: np.ndarray,
+    length: np.ndarray,
+    margin_m: float,
+    max_gap_m: float,
+) -> np.ndarray:
+    """(P,) the gap of each pair (i[k], j[k]) of :func:`_rays_meet`, inf where they do not
+    meet: closest points of the lines c_i + s u_i and c_j + t u_j, in front of both cameras
+    (0.5 m) and not beyond either region's surface, within ``max_gap_m``, at a point both
+    regions cover."""
+    w = cameras[i] - cameras[j]
+    b = np.einsum("pk,pk->p", u[i], u[j])
+    uw_i = np.einsum("pk,pk->p", u[i], w)
+    uw_j = np.einsum("pk,pk->p", u[j], w)
+    den = 1.0 - b * b
+    ok = den >= 1e-4  # (nearly) parallel: no depth from this pair
+    den = np.where(ok, den, 1.0)
+    s = (b * uw_j - uw_i) / den
+    t = (uw_j - b * uw_i) / den
+    ok &= (0.5 < s) & (s <= length[i] + margin_m) & (0.5 < t) & (t <= length[j] + margin_m)
+    p_i = cameras[i] + s[:, None] * u[i]
+    p_j = cameras[j] + t[:, None] * u[j]
+    gap = np.linalg.norm(p_i - p_j, axis=1)
+    ok &= gap <= max_gap_m
+    x = (p_i + p_j) / 2
+    ok &= _covers_all(x, cameras[i], centroids[i], lo[i], hi[i], margin_m)
+    ok &= _covers_all(x, cameras[j], centroids[j], lo[j], hi[j], margin_m)
+    return np.where(ok, gap, np.inf)
+
+
+def _covers_all(
+    points: np.ndarray,
+    cameras: np.ndarray,
+    centroids: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    margin_m: float,
+) -> np.ndarray:
+    """(P,) bool: :func:`covers` of each row ((P, 3) metres each)."""
+    d = points - cameras
+    dist = np.linalg.norm(d, axis=1)
+    near = dist < 1e-6
+    scale = np.linalg.norm(centroids - cameras, axis=1) / np.where(near, 1.0, dist)
+    on_surface = cameras + d * scale[:, None]
+    inside = np.all((on_surface >= lo - margin_m) & (on_surface <= hi + margin_m), axis=1)
+    return inside & ~near
 
 
 def nearest_to_rays(origins: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, float]:

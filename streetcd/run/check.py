@@ -23,7 +23,7 @@ import math
 import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -33,6 +33,7 @@ from streetcd.errors import CRSMismatchError, InputError, MissingInputError, Str
 from streetcd.store.locks import lock_path, run_lock
 
 if TYPE_CHECKING:
+    from streetcd.run.plan import NightListing
     from streetcd.store.tiles import TileStore
     from streetcd.types import View
 
@@ -45,7 +46,8 @@ class CheckReport:
 
     image_names, pose_names : the image files in the folder and the view names in the pose
     file. crs : the CRS the night will be in (None: a local frame). notes, warnings : one
-    line each (see the module docstring). seconds : how long the check took.
+    line each (see the module docstring). seconds : how long the check took. listing :
+    the folder and pose file as read (the run plans from it, not reading them again).
     """
 
     image_names: frozenset[str]
@@ -54,6 +56,7 @@ class CheckReport:
     notes: tuple[str, ...]
     warnings: tuple[str, ...]
     seconds: float
+    listing: NightListing | None = field(default=None, compare=False, repr=False)
 
 
 def check_inputs(
@@ -81,12 +84,11 @@ def check_inputs(
         with run_lock(index, "streetcd check"):  # IndexBusyError naming the holder
             pass
     # imported now, not with the module: a missing input answers before a second of imports
-    from streetcd.io.images import list_images
-    from streetcd.io.poses import read_poses
-    from streetcd.run.plan import readable_images
+    from streetcd.run.plan import list_night
 
     # links out of the folder and non-UTF-8 names are never read; each fails its own view
-    files, refused = readable_images(list_images(images), images)
+    listing = list_night(images, poses)
+    files, refused = listing.files, listing.refused
     if not files and not refused:
         raise InputError(f"{images}: no images (.jpg, .jpeg, .png, .tif, .tiff) in this folder")
     notes: list[str] = []
@@ -94,8 +96,7 @@ def check_inputs(
     if refused:
         first = next(iter(refused.values()))[0]
         warnings.append(f"{len(refused)} image(s) will fail unread: {_some(refused)}; e.g. {first}")
-    bad_rows: list[tuple[str, str]] = []
-    pose_set = read_poses(poses, image_dir=images, bad_rows=bad_rows)
+    bad_rows, pose_set = listing.bad_rows, listing.pose_set
     if not pose_set.views:
         first = f"; first bad row: {bad_rows[0][1]}" if bad_rows else ""
         raise InputError(f"{poses}: no usable pose ({len(bad_rows)} bad row(s){first})")
@@ -142,6 +143,7 @@ def check_inputs(
         tuple(notes),
         tuple(warnings),
         time.perf_counter() - t0,
+        listing,
     )
 
 

@@ -46,7 +46,14 @@ from streetcd.errors import StreetcdError
 from streetcd.run.check import CheckReport, check_inputs
 from streetcd.run.cluster import dask_client_soon
 from streetcd.run.dispatch import Dispatcher
-from streetcd.run.plan import Plan, file_hash, image_name, lasting_key, plan_run
+from streetcd.run.plan import (
+    NightListing,
+    Plan,
+    file_hash,
+    image_name,
+    lasting_key,
+    plan_run,
+)
 from streetcd.run.publish import (
     ObjectBuilder,
     RunSummary,
@@ -179,7 +186,9 @@ def _night(
                 tracker.step("ingest-archive", ingest_archive, inputs, starting.result(), log)
                 report = tracker.step("check-inputs", check_night, inputs, config, log)
             assert report is not None
-            plan = tracker.step("plan-segments", plan_night, inputs, config, retry_failed, log)
+            plan = tracker.step(
+                "plan-segments", plan_night, inputs, config, retry_failed, log, report.listing
+            )
             summary = new_summary(plan)
             summary.notes = [*report.notes, *(f"warning: {w}" for w in report.warnings)]
             summary.plan_s = time.perf_counter() - t0
@@ -289,8 +298,15 @@ def ingest_archive(inputs: NightInputs, client: Client, log: Logger) -> dict[str
     }
 
 
-def plan_night(inputs: NightInputs, config: Config, retry_failed: bool, log: Logger) -> Plan:
-    """Plan the night (:func:`~streetcd.run.plan.plan_run`) and record the plan in the index."""
+def plan_night(
+    inputs: NightInputs,
+    config: Config,
+    retry_failed: bool,
+    log: Logger,
+    listing: NightListing | None = None,
+) -> Plan:
+    """Plan the night (:func:`~streetcd.run.plan.plan_run`, from the input check's
+    ``listing`` where given) and record the plan in the index."""
     open_index(inputs.index)
     plan = plan_run(
         inputs.images,
@@ -300,6 +316,7 @@ def plan_night(inputs: NightInputs, config: Config, retry_failed: bool, log: Log
         inputs.out,
         config,
         retry_failed=retry_failed,
+        listing=listing,
     )
     register_plan(plan)
     log.info(

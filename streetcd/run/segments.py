@@ -25,7 +25,7 @@ import numpy as np
 from streetcd.config import SegmentParams
 from streetcd.errors import InputError
 from streetcd.geometry.chainage import project_on_polyline
-from streetcd.geometry.neighbours import MIN_PARALLAX_PX, select_neighbours
+from streetcd.geometry.neighbours import MIN_PARALLAX_PX, select_neighbours_many
 from streetcd.io.roads import RoadLine, read_roads
 from streetcd.types import View
 
@@ -202,15 +202,10 @@ def neighbours_of(
     tree = cKDTree(centers[:, :2])
     k = min(max_candidates + 1, len(views))  # +1: the view itself comes back too
     dist, idx = tree.query(centers[:, :2], k=k, distance_upper_bound=radius_m)
-    out = {}
-    for i, view in enumerate(views):
-        near = sorted(
-            int(j) for d, j in zip(dist[i], idx[i], strict=True) if np.isfinite(d) and j != i
-        )
-        cands = [views[j] for j in near]
-        picked = select_neighbours(view, cands, n=n, min_parallax_px=min_parallax_px)
-        out[view.name] = tuple(v.name for v in picked)
-    return out
+    found = np.isfinite(dist) & (idx != np.arange(len(views))[:, None])
+    cands = [[views[j] for j in sorted(idx[i][found[i]].tolist())] for i in range(len(views))]
+    picked = select_neighbours_many(views, cands, n=n, min_parallax_px=min_parallax_px)
+    return {v.name: tuple(p.name for p in chosen) for v, chosen in zip(views, picked, strict=True)}
 
 
 def plan_segments(

@@ -1,0 +1,228 @@
+"""Reference-colour check: is the object the old cloud shows still what the image shows?
+
+**Not in the paper.** Eq. 5 compares the view with its *new* neighbours re-projected through the
+*old* surface, so it sees a change only where the geometry changed *and* the colours along the
+wrong rays differ. Two kinds of change slip through it (the paper's own caveat: "for
+homogeneous areas, geometrical changes may not lead to color differences"):
+
+* a removed object in front of a plain wall: every neighbour, sampled through the board's old
+  depth, shows the same plaster the view shows;
+* an object replaced by another at the same place (a hedge where a railing stood): the new
+  object is photo-consistent with the old geometry.
+
+The MLS cloud carries colours (the paper's z-buffer of eq. 2 already relies on them), so the
+view can also be compared with the *old appearance* itself: the surface rasteriser gives
+each pixel the colour of its nearest kept point (:class:`streetcd.detect.surface.ViewSurface`
+``colour``). Old and new colours come from different sensors and days, so they are
+compared after
+
+1. **colour transfer**: each channel of the reference colours is moved onto the image's
+   mean and standard deviation over the pixels that have a surface (a gain and an offset
+   per channel, :func:`transfer_colours`): exposure, white balance and the scanner camera's
+   response cancel;
+2. **an illumination-tolerant distance**: the L1 difference of chromaticities
+   ``rgb / (R + G + B + ε)`` (0–2), plus the log-brightness difference beyond a tolerance,
+   so cast shadows (darker, same hue) that the scan did not have count little:
+   ``A_p = min(1, w_c · ‖ĉ_I − ĉ_M‖₁ + w_b · max(0, |ln(ΣI / ΣM)| − t_b))``.
+
+It is checked only on the **inventory classes** (poles, signs, railings, furniture), over their
+footprint with see-through gaps closed (a railing's bars are a few pixels wide; the hedge
+that replaced it stands in the gaps too, where the old surface is the wall behind): there
+the question is whether the object is still there, and façades, ground and trees differ from
+their scan for reasons that are no change (glass reflects the sky, foliage moves, shadows
+move). New objects in front of façades and ground are left to eq. 5, which sees them by their
+geometry. :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before the node
+energy of eq. 7; ``AppearanceParams(enabled=False)`` is the paper's method.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from streetcd.config import AppearanceParams, scale_px
+
+_DEFAULTS = AppearanceParams()
+_NEAREST = cv2.INTER_NEAREST_EXACT  # integer upscaling: each block's value on its f × f pixels
+CLOSE_WORK_PX = 16  # the footprint's closing runs on blocks where its disc is about this wide
+STAT_STRIDE = 4  # colour statistics on every 4th row and column: 1/16 of the pixels suffice
+
+
+def transfer_luts(reference: np.ndarray, image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(3, 256) uint8 tables moving the reference colours channel by channel onto the image's
+    mean and standard deviation over ``valid`` pixels (Reinhard et al. 2001, per RGB
+    channel): a gain and an offset per channel, which exposure, white balance and the
+    scanner camera's response need, and which a changed object covering a few per cent of
+    the view cannot absorb (a histogram match would map its colours onto whatever the image
+    has most of). The statistics are taken on every ``STAT_STRIDE``-th row and column.
+
+    reference, image : (H, W, 3) uint8; valid : (H, W) bool. Identity tables when no pixel
+    is valid.
+    """
+    k = STAT_STRIDE
+    pick = valid[::k, ::k]
+    if not pick.any():
+        pick, k = valid, 1
+    luts = np.tile(np.arange(256, dtype=np.uint8), (3, 1))
+    if not pick.any():
+        return luts
+    ref = reference[::k, ::k][pick].astype(np.float64)  # (N, 3)
+    img = image[::k, ::k][pick].astype(np.float64)
+    for c in range(3):
+        gain = img[:, c].std() / max(ref[:, c].std(), 1.0)
+        lut = (np.arange(256) - ref[:, c].mean()) * gain + img[:, c].mean()
+        luts[c] = np.clip(np.round(lut), 0, 255)
+    return luts
+
+
+def transfer_colours(reference: np.ndarray, image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The whole (H, W, 3) uint8 reference through :func:`transfer_luts`."""
+    luts = transfer_luts(reference, image, valid)
+    return np.stack([cv2.LUT(reference[..., c], luts[c]) for c in range(3)], axis=-1)
+
+
+def colour_distance(
+    image: np.ndarray, reference: np.ndarray, params: AppearanceParams = _DEFAULTS
+) -> np.ndarray:
+    """``A`` of the module docstring, per pixel, without masking. image, reference :
+    (H, W, 3) uint8 (reference already transferred). Returns (H, W) float32 in [0, 1]."""
+    i = image.astype(np.float32)
+    m = reference.astype(np.float32)
+    si = i.sum(axis=-1) + np.float32(params.dark_level)
+    sm = m.sum(axis=-1) + np.float32(params.dark_level)
+    chroma = np.abs(i / si[..., None] - m / sm[..., None]).sum(axis=-1)
+    bright = np.maximum(np.abs(np.log(si / sm)) - np.float32(params.brightness_tolerance), 0)
+    a = params.chroma_weight * chroma + params.brightness_weight * bright
+    return np.clip(a, 0.0, 1.0).astype(np.float32)
+
+
+def footprint(
+    classes: np.ndarray,
+    checked_classes: tuple[int, ...],
+    close_px: int,
+    holes: np.ndarray | None = None,
+    hole_reach: float = 0.0,
+) -> np.ndarray:
+    """(H, W) bool: the pixels of ``checked_classes`` in the (H, W) uint8 class raster, closed
+    (dilated, then eroded) with a disc ``close_px`` wide, so that the see-through gaps of a
+    railing or between a sign's posts count as the object's footprint.
+
+    holes : (H, W) bool, pixels without a surface. Those within ``hole_reach · close_px`` of
+    the class count as the class before the closing: the surface filters drop the triangles
+    between a railing's thin bars and the wall behind them, so a railing is mostly holes
+    with a few pixels of its class, and gaps wider than the disc would stay open.
+    """
+    mask = np.isin(classes, checked_classes)
+    if close_px <= 1 or not mask.any():
+        return mask
+    # OpenCV's closing with a full-resolution disc is slow at 12 MP; on a grid of f × f blocks
+    # (any pixel of the class marks its block) a disc of about CLOSE_WORK_PX is cheap
+    # (docs/BENCHMARKS.md).
+    # The footprint then reaches up to f − 1 px past the object, onto what is behind it,
+    # whose reference colour is its own: no change is made up there.
+    f = max(1, close_px // CLOSE_WORK_PX)
+    small = _block_any(mask, f)
+    k = max(3, close_px // f) | 1
+    if holes is not None and hole_reach > 0:
+        r = max(3, int(hole_reach * close_px / f)) | 1
+        near = cv2.dilate(small, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r, r)))
+        small |= near & _block_any(holes, f)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, disc)
+    h, w = mask.shape
+    if f == 1:
+        return mask | (closed > 0)
+    big = cv2.resize(closed, (closed.shape[1] * f, closed.shape[0] * f), interpolation=_NEAREST)
+    return mask | (big[:h, :w] > 0)
+
+
+def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
+    """(ceil(H/f), ceil(W/f)) uint8: 1 where any pixel of the f × f block of ``mask`` is set
+    (an f × f dilation anchored at the block's corner, read at every f-th pixel: OpenCV's
+    separable max is much faster than numpy's max over the reshaped blocks,
+    docs/BENCHMARKS.md)."""
+    if f == 1:
+        return mask.astype(np.uint8)
+    h, w = mask.shape
+    hb, wb = -(-h // f), -(-w // f)
+    blocks = np.zeros((hb * f, wb * f), np.uint8)
+    blocks[:h, :w] = mask
+    grown = cv2.dilate(blocks, np.ones((f, f), np.uint8), anchor=(0, 0), borderValue=0)
+    return np.ascontiguousarray(grown[::f, ::f])
+
+
+def fill_nearest(
+    reference: np.ndarray, valid: np.ndarray, where: np.ndarray, reach_px: int = 0
+) -> np.ndarray:
+    """``reference`` (H, W, 3) with each pixel of ``where`` that has no surface (``valid``
+    False) given the colour of the nearest pixel that has one (a distance transform with
+    nearest-pixel labels, OpenCV's 5×5 L2 mask). ``reach_px`` > 0 looks for that pixel only
+    within the holes' bounding box grown by ``reach_px`` (a gap's own width suffices); 0 looks
+    everywhere."""
+    holes = where & ~valid
+    if not holes.any() or not valid.any():
+        return reference
+    rows, cols = np.flatnonzero(holes.any(axis=1)), np.flatnonzero(holes.any(axis=0))
+    h, w = valid.shape
+    r0, c0 = int(rows[0]), int(cols[0])
+    r1, c1 = int(rows[-1]) + 1, int(cols[-1]) + 1
+    if reach_px > 0:
+        r0, c0 = max(0, r0 - reach_px), max(0, c0 - reach_px)
+        r1, c1 = min(h, r1 + reach_px), min(w, c1 + reach_px)
+    else:
+        r0, c0, r1, c1 = 0, 0, h, w
+    box = valid[r0:r1, c0:c1]
+    if not box.any():
+        return reference
+    _, labels = cv2.distanceTransformWithLabels(
+        (~box).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # labels number the box's valid pixels 1, 2, … in row-major order
+    source = np.flatnonzero(box.ravel())
+    box_holes = holes[r0:r1, c0:c1]
+    out = reference.copy()
+    pick = source[labels[box_holes] - 1]
+    out[r0:r1, c0:c1][box_holes] = reference[r0:r1, c0:c1].reshape(-1, 3)[pick]
+    return out
+
+
+def appearance_change(
+    image: np.ndarray,
+    reference: np.ndarray,
+    valid: np.ndarray,
+    classes: np.ndarray,
+    params: AppearanceParams = _DEFAULTS,
+    registration_px: int = 0,
+) -> np.ndarray:
+    """Appearance change ``A_p`` (module docstring) of one view.
+
+    image : (H, W, 3) uint8 RGB of the view. reference : (H, W, 3) uint8 colours of the old
+    cloud as the view sees it (``ViewSurface.colour``). valid : (H, W) bool, pixels with a
+    surface. classes : (H, W) uint8 class raster. Returns (H, W) float32 in [0, 1], 0 outside
+    the footprint of ``params.classes`` (:func:`footprint`, its gaps closed over
+    ``params.gap_px`` scaled to the image width); gaps without a surface take the nearest
+    surface pixel's colour. registration_px > 0: ``A_p`` is opened (a grey erosion, then a
+    dilation) with a (2r+1)² square, so the bands that a registration error of up to ``r``
+    px leaves along an object's outline (image and reference shifted against each other)
+    go, while anything wider keeps its extent: the tolerance eq. 5 has through
+    :func:`streetcd.detect.correlate.colour_envelope`.
+    """
+    close_px = int(round(scale_px(params.gap_px, valid.shape[1]))) | 1  # odd
+    checked = (
+        footprint(classes, params.classes, close_px, holes=~valid, hole_reach=params.hole_reach)
+        if params.gap_px > 0
+        else None
+    )
+    if checked is None:
+        checked = valid & np.isin(classes, params.classes)
+    out = np.zeros(valid.shape, dtype=np.float32)
+    if not checked.any() or not valid.any():
+        return out
+    luts = transfer_luts(reference, image, valid)
+    ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
+    mapped = np.stack([luts[c][ref[:, c]] for c in range(3)], axis=-1)
+    out[checked] = colour_distance(image[checked], mapped, params)
+    if registration_px > 0:
+        square = np.ones((2 * registration_px + 1, 2 * registration_px + 1), np.uint8)
+        return np.asarray(cv2.morphologyEx(out, cv2.MORPH_OPEN, square), dtype=np.float32)
+    return out

@@ -1,0 +1,567 @@
+"""One view end to end (paper §3.2–3.4): the only module that chains the steps.
+
+:func:`detect_view` is the pure kernel (arrays in, :class:`DetectionResult` out):
+
+1. surface of the view and of each neighbour from the reference cloud (z-buffer eq. 1–3,
+   view-dependent triangulation; :func:`streetcd.detect.surface.surface_for_view`);
+2. histogram stretching of every image and the raw change ``C_p`` (eq. 4–5,
+   :mod:`streetcd.detect.correlate`), fused with the reference-colour check ``A_p`` (not in the
+   paper; :mod:`streetcd.detect.appearance`) as ``max(C_p, k · A_p)``;
+3. node energy (eq. 7), class-aware superpixels (eq. 10–11), graph cut (eq. 6, 8–9) and
+   speckle filter (:mod:`streetcd.detect.graphcut`);
+4. each changed region's outline redrawn at pixel level by colour, within half a superpixel
+   of the cut's (not in the paper; :mod:`streetcd.detect.refine`), and the speckle filter again;
+5. the changed regions: 8-connected components of the mask, each with a score (mean node
+   energy), its 3D centroid and extent from the depth raster and the dominant class
+   (:mod:`streetcd.detect.regions`).
+
+Nothing here reads or writes files: images, clouds and outputs are :mod:`streetcd.io`'s, and
+what may be kept between calls (:class:`~streetcd.detect.cache.SurfaceCache`) is passed in.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from streetcd.config import DetectParams, scale_px
+from streetcd.detect.appearance import appearance_change
+from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
+from streetcd.detect.correlate import (
+    Neighbour,
+    NeighbourView,
+    envelope_levels,
+    hole_depths,
+    pair_lut,
+    raw_change,
+    registration_radius_px,
+    stretch_lut,
+    weigh_low_classes,
+)
+from streetcd.detect.graphcut import (
+    cut_changes,
+    nearest_index,
+    node_energy,
+    superpixel_mean,
+    superpixels,
+)
+from streetcd.detect.intensity import intensity_change, intensity_codes
+from streetcd.detect.refine import refined_mask
+from streetcd.detect.regions import Region, changed_regions
+from streetcd.detect.roles import cloud_roles, useless_classes
+from streetcd.detect.silhouette import near_depth_hypothesis
+from streetcd.detect.surface import ViewSurface, surface_for_view
+from streetcd.detect.sweep import nearer_depth_change
+from streetcd.detect.texture import texture_change
+from streetcd.errors import (
+    EmptyViewError,
+    InputError,
+)
+from streetcd.types import Intrinsics, PointCloud, View
+
+_DEFAULTS = DetectParams()  # frozen: one shared default instance
+log = logging.getLogger(__name__)
+CHANGE_CELL_PX = 24.0  # raw change runs where a superpixel cell is about this wide
+
+
+@dataclass(frozen=True)
+class DetectionResult:
+    """Everything :func:`detect_view` found in one view, and what a reader needs to see why.
+
+    mask : (H, W) bool, changed pixels. raw_change : (H, W) float32 ``C_p`` in [0, 1].
+    node_energy : (H, W) float32 ``D_p(x_p = 0)`` of eq. 7 in [0, 1].
+    superpixels : (H, W) int32 labels. depth : (H, W) float32 metres (NaN = no surface).
+    classes : (H, W) uint8 (0 = no surface). regions : list of :class:`Region`.
+    score : float in [0, 1], the highest region score (0 without regions).
+    changed_fraction : share of the image's pixels in the mask. origin : (3,) float64 CRS
+    metres of the local frame. Beyond the contract: ``region_labels`` (H, W) int32 (0 = none),
+    ``support`` (H, W) uint8 (neighbours that gave evidence per pixel), ``view`` (name),
+    ``neighbours`` (names of the neighbours used), ``timings`` (seconds per step),
+    ``appearance`` (H, W) float32 ``A_p`` of :mod:`streetcd.detect.appearance` in [0, 1], or None
+    when the check is off or the cloud has no colours. The node energy is eq. 7 of
+    ``max(raw_change, weight · appearance)``. ``cut_mask`` (H, W) bool is the superpixel
+    cut's mask before :mod:`streetcd.detect.refine` redrew its outlines (``mask`` when that is off).
+    ``texture`` (H, W) float32 ``T_p`` of :mod:`streetcd.detect.texture` in [0, 1], or None when
+    that cue is off; the node energy then sees ``max(…, texture.weight · T_p)``.
+    """
+
+    mask: np.ndarray
+    raw_change: np.ndarray
+    node_energy: np.ndarray
+    superpixels: np.ndarray
+    depth: np.ndarray
+    classes: np.ndarray
+    regions: list[Region]
+    score: float
+    changed_fraction: float
+    origin: np.ndarray
+    region_labels: np.ndarray
+    support: np.ndarray
+    view: str = ""
+    neighbours: tuple[str, ...] = ()
+    timings: dict[str, float] = field(default_factory=dict)
+    appearance: np.ndarray | None = None
+    cut_mask: np.ndarray | None = None
+    texture: np.ndarray | None = None
+
+
+def _check_image(image: np.ndarray, view: View) -> np.ndarray:
+    image = np.asarray(image)
+    intr = view.intrinsics
+    if image.dtype != np.uint8 or image.shape != (intr.height, intr.width, 3):
+        raise InputError(
+            f"view {view.name!r}: image is {image.dtype} {image.shape}, the "
+            f"camera expects uint8 ({intr.height}, {intr.width}, 3)"
+        )
+    return image
+
+
+def view_surface_of(
+    image: np.ndarray,
+    local: View,
+    cloud: PointCloud,
+    params: DetectParams,
+    cache: SurfaceCache | None = None,
+    colours: Callable[[], np.ndarray | None] | None = None,
+) -> ViewSurface:
+    """The surface of the view ``local`` (local frame) from ``cache`` or built (and cached);
+    EmptyViewError as :func:`streetcd.detect.surface.surface_for_view`. ``colours`` gives
+    the cloud's 8-bit colours (:func:`cloud_colours`), converted once for all the surfaces of
+    a call."""
+    if colours is None:
+        colours = cloud_colours(cloud, params, cache)
+
+    def build() -> ViewSurface:
+        roles = cloud_roles(cloud.xyz, cloud.classification, params.classes)
+        return surface_for_view(
+            cloud.xyz, roles, image, local.intrinsics, local.pose, params, colours()
+        )[0]
+
+    if cache is None:
+        return build()
+    key = cache.key(image, local, cloud, params)
+    surf = cache.get(key, cloud)
+    if surf is None:
+        surf = build()
+        cache.put(key, cloud, surf)
+    return surf
+
+
+def cloud_colours(
+    cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None
+) -> Callable[[], np.ndarray | None]:
+    """A function giving the cloud's colours as (N, 3) uint8 for the z-buffer (eq. 2), or
+    None when the appearance check is off or the cloud has none; converted on first call
+    only (and kept by ``cache`` for the cloud's lifetime when one is given). A cloud without
+    colours gives its intensity codes instead (:func:`streetcd.detect.intensity.intensity_codes`)
+    with ``appearance.intensity`` (:func:`reference_kind` tells which)."""
+    done: list[np.ndarray | None] = []
+
+    def colours() -> np.ndarray | None:
+        if not done:
+            rgb = _rgb8_of(cloud, params, cache)
+            if rgb is None and params.appearance.enabled and params.appearance.intensity:
+                rgb = intensity_codes(cloud.intensity)
+            done.append(rgb)
+        return done[0]
+
+    return colours
+
+
+def detect_view(
+    image: np.ndarray,
+    view: View,
+    neighbours: Sequence[tuple[np.ndarray, View]],
+    cloud: PointCloud,
+    params: DetectParams = _DEFAULTS,
+    *,
+    surfaces: SurfaceCache | None = None,
+) -> DetectionResult:
+    """Change mask of one view against the reference cloud (paper §3.2–3.4).
+
+    image : (H, W, 3) uint8 RGB of ``view``. neighbours : (image, view) pairs of overlapping
+    views (the paper uses 2–3). Views carry CRS poses; they are moved into the cloud's local
+    frame (``view.local(cloud.origin)``). A neighbour that sees no point is left out.
+    surfaces : where surfaces are looked up and kept (:class:`~streetcd.detect.cache.SurfaceCache`,
+    owned by the caller: a worker keeps one for its run); None, the default, builds every
+    surface afresh and keeps nothing. The result is the same either way; with a cache, the
+    surfaces in it are shared with the cache and must not be modified.
+
+    Raises EmptyViewError naming the view when it sees no reference point, InputError when an
+    image does not fit its camera.
+    """
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = timings.get(name, 0.0) + now - clock
+        clock = now
+
+    image = _check_image(image, view)
+    local = view.local(cloud.origin)
+    _check_classes(cloud, params, surfaces)
+    colours = cloud_colours(cloud, params, surfaces)
+    try:
+        surf = view_surface_of(image, local, cloud, params, surfaces, colours)
+    except EmptyViewError as exc:
+        raise EmptyViewError(f"view {view.name!r} sees no reference points: {exc}") from None
+    if not surf.valid.any():
+        raise EmptyViewError(
+            f"view {view.name!r} sees no reference surface (points project but form no triangle)"
+        )
+    lap("surface")
+    used: list[Neighbour] = []
+    seen: list[NeighbourView] = []
+    names: list[str] = []
+    view_lut = stretch_lut(image, params.correlate.stretch_percentiles)
+    for nb_image, nb_view in neighbours:
+        nb_image = _check_image(nb_image, nb_view)
+        nb_local = nb_view.local(cloud.origin)
+        try:
+            nb_surf = view_surface_of(nb_image, nb_local, cloud, params, surfaces, colours)
+        except EmptyViewError:
+            lap("surface")
+            continue  # a neighbour without points gives no evidence
+        lap("surface")
+        used.append(_neighbour(nb_image, nb_surf, nb_local, surf, local, view_lut, image, params))
+        seen.append((nb_image, nb_surf.depth, nb_local.intrinsics, nb_local.pose, used[-1].holes))
+        names.append(nb_view.name)
+        lap("stretch")
+    stretched = cv2.LUT(np.ascontiguousarray(image), view_lut)  # = stretch_histogram(image)
+    lap("stretch")
+    change, support = _raw_change_at_cell_scale(
+        stretched, surf.depth, surf.classes, local, used, params
+    )
+    if params.correlate.silhouette_margin_m > 0 and used:
+        change = _with_near_hypothesis(change, stretched, surf, local, used, params)
+    used.clear()  # their envelopes and depths (360 MB at 12 MP) are not needed past eq. 5
+    lap("raw_change")
+    kind = reference_kind(cloud, params, surfaces) if surf.colour is not None else None
+    if params.appearance.enabled and kind != "colour":
+        _tell_no_colours(surfaces, kind)
+    fused, appearance = fuse_appearance(image, surf, change, local, params, kind or "colour")
+    if appearance is not None:
+        lap("appearance")
+    texture = None
+    if params.texture.enabled and seen:
+        texture = _texture(image, surf, local, seen, params)
+        fused = np.maximum(fused, np.float32(params.texture.weight) * texture)
+        lap("texture")
+    if params.correlate.nearer_weight > 0 and len(seen) >= 2:
+        nearer = _nearer(image, surf, local, seen, params)
+        fused = np.maximum(fused, np.float32(params.correlate.nearer_weight) * nearer)
+        lap("nearer")
+    seen.clear()
+    labels = None
+    if params.graphcut.energy_of_mean:  # eq. 7 of each superpixel's mean raw change
+        labels = superpixels(stretched, surf.classes, params.graphcut)
+        fused = superpixel_mean(fused, labels)
+    energy = node_energy(fused, params.graphcut.a, params.graphcut.b)
+    lap("node_energy")
+    cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
+    lap("graphcut")
+    mask = refined_mask(image, cut.mask, params)
+    lap("refine")
+    region_labels, regions = changed_regions(
+        mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
+    )
+    lap("regions")
+    score = max((r.score for r in regions), default=0.0)
+    return DetectionResult(
+        mask=mask,
+        raw_change=change,
+        node_energy=energy,
+        superpixels=cut.superpixels,
+        depth=surf.depth,
+        classes=surf.classes,
+        regions=regions,
+        score=float(score),
+        changed_fraction=float(mask.mean()),
+        origin=np.asarray(cloud.origin, np.float64),
+        region_labels=region_labels,
+        support=support,
+        view=view.name,
+        neighbours=tuple(names),
+        timings=timings,
+        appearance=appearance,
+        cut_mask=cut.mask,
+        texture=texture,
+    )
+
+
+def fuse_appearance(
+    image: np.ndarray,
+    surf: ViewSurface,
+    change: np.ndarray,
+    local: View,
+    params: DetectParams,
+    kind: str = "colour",
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The change eq. 7 sees, ``max(C_p, k · A_p)``, and ``A_p`` (:mod:`streetcd.detect.appearance`)
+    of the view ``image`` (H, W, 3) uint8 on its surface ``surf``; ``(change, None)`` when the
+    check is off or the surface has no colours. change : (H, W) float32 raw change. kind
+    "intensity" (:func:`reference_kind`): ``surf.colour`` holds intensity codes, and ``A_p``
+    is the intensity check's (:mod:`streetcd.detect.intensity`)."""
+    if not params.appearance.enabled or surf.colour is None:
+        return change, None
+    radius = registration_radius_px(local.intrinsics.width, params.correlate)
+    if kind == "intensity":
+        appearance = intensity_change(
+            image, surf.colour[..., 0], surf.valid, surf.classes, params.appearance, radius
+        )
+    else:
+        appearance = appearance_change(
+            image, surf.colour, surf.valid, surf.classes, params.appearance, radius
+        )
+    return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
+
+
+def _neighbour(
+    nb_image: np.ndarray,
+    nb_surf: ViewSurface,
+    nb_local: View,
+    surf: ViewSurface,
+    local: View,
+    view_lut: np.ndarray,
+    image: np.ndarray,
+    params: DetectParams,
+) -> Neighbour:
+    """One neighbour ready for eq. 5 (local frame): its colour envelope straight from the
+    uint8 image, looked up only where :func:`raw_change` samples it (neither a stretched
+    image nor a float envelope is built), through its own stretch or, with
+    ``correlate.pair_gain``, through :func:`streetcd.detect.correlate.pair_lut` onto the view's
+    (``view_lut``, the view's :func:`~streetcd.detect.correlate.stretch_lut`)."""
+    c = params.correlate
+    radius = registration_radius_px(nb_local.intrinsics.width, c)
+    lo, hi, lut = envelope_levels(nb_image, radius, c.stretch_percentiles)
+    fill = 0
+    if c.occluder_fill_px > 0:
+        fill = round(scale_px(c.occluder_fill_px, nb_local.intrinsics.width))
+    holes = hole_depths(nb_surf.depth, fill)
+    if c.pair_gain:
+        lut = pair_lut(
+            image,
+            surf.depth,
+            local.intrinsics,
+            local.pose,
+            nb_image,
+            nb_surf.depth,
+            nb_local.intrinsics,
+            nb_local.pose,
+            c.stretch_percentiles,
+            c.occlusion_tolerance_m,
+            lut_p=view_lut,
+            lut_q=lut,
+            holes_q=holes,
+        )
+    return Neighbour(
+        lo,
+        nb_surf.depth,
+        nb_local.intrinsics,
+        nb_local.pose,
+        envelope=(lo, hi),
+        lut=lut,
+        holes=holes,
+    )
+
+
+def _texture(
+    image: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    seen: Sequence[NeighbourView],
+    params: DetectParams,
+) -> np.ndarray:
+    """The texture cue ``T_p`` (:mod:`streetcd.detect.texture`) of the view, on the pixels
+    whose old surface is of ``texture.classes`` (all without), weighted by class like eq. 5."""
+    tp = params.texture
+    where = None
+    if tp.classes:
+        where = np.isin(surf.classes, np.asarray(tp.classes, dtype=np.uint8))
+    texture, _ = texture_change(
+        image,
+        surf.depth,
+        local.intrinsics,
+        local.pose,
+        seen,
+        tp,
+        params.correlate.occlusion_tolerance_m,
+        scale_px(tp.registration_tolerance_px, local.intrinsics.width, minimum=0.0),
+        where,
+    )
+    weigh_low_classes(texture, surf.classes, params.correlate)
+    return texture
+
+
+def _nearer(
+    image: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    seen: Sequence[NeighbourView],
+    params: DetectParams,
+) -> np.ndarray:
+    """The nearer-depth test ``N_p`` (:mod:`streetcd.detect.sweep`), weighted by class like
+    eq. 5."""
+    cp = params.correlate
+    nearer = nearer_depth_change(
+        image,
+        surf.depth,
+        local.intrinsics,
+        local.pose,
+        seen,
+        fractions=cp.nearer_fractions,
+        margin=cp.nearer_margin,
+        span=cp.nearer_span,
+        match=cp.nearer_match,
+        window_px=cp.nearer_window_px,
+        scale=cp.nearer_scale,
+        max_work_px=params.texture.max_work_width_px,
+        occlusion_tolerance_m=cp.occlusion_tolerance_m,
+        percentiles=cp.stretch_percentiles,
+    )
+    weigh_low_classes(nearer, surf.classes, cp)
+    return nearer
+
+
+def _check_classes(cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None) -> None:
+    """Warn when the cloud's classes are of no use to the detector (its codes are not in the
+    class map, or it is unclassified): once per cache (a worker's run), or at every call
+    without one."""
+    if cache is not None and not cache.first_time("classes checked"):
+        return
+    why = useless_classes(cloud.classification, params.classes)
+    if why is not None:
+        log.warning(why)
+
+
+def reference_kind(
+    cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None = None
+) -> str | None:
+    """What the surfaces' ``colour`` raster holds for ``cloud``: "colour" (the cloud's own,
+    for the reference-colour check), "intensity" (its intensity codes, for the intensity
+    check, when it has no colours), or None (the check is off, or the cloud has neither)."""
+    if not params.appearance.enabled:
+        return None
+    if _rgb8_of(cloud, params, cache) is not None:
+        return "colour"
+    if params.appearance.intensity and intensity_codes(cloud.intensity) is not None:
+        return "intensity"
+    return None
+
+
+def _rgb8_of(
+    cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None
+) -> np.ndarray | None:
+    """The cloud's 8-bit colours when the appearance check wants them, else None."""
+    if not wants_colour(cloud, params) or cloud.rgb is None:
+        return None
+    return cache.cloud_rgb8(cloud) if cache is not None else cloud_rgb8(cloud.rgb)
+
+
+def _tell_no_colours(cache: SurfaceCache | None, kind: str | None = None) -> None:
+    """Warn that the appearance check is off for want of colours (or, ``kind`` "intensity",
+    that the intensity check stands in for it): once per cache (a worker's run), or at every
+    call without one."""
+    if kind == "intensity":
+        if cache is None or cache.first_time("intensity instead of colours"):
+            log.info(
+                "the reference cloud has no colours: the intensity check "
+                "(streetcd.detect.intensity) stands in for the reference-colour check"
+            )
+        return
+    if cache is None or cache.first_time("no colours"):
+        log.warning(
+            "the reference cloud has no colours (none, or all zero): the reference-colour check "
+            "(streetcd.detect.appearance) is off and removed or replaced objects in front of "
+            "plain backgrounds will be missed (the paper's method alone)"
+        )
+
+
+def _raw_change_at_cell_scale(
+    stretched: np.ndarray,
+    depth: np.ndarray,
+    classes: np.ndarray,
+    local: View,
+    used: Sequence[Neighbour],
+    params: DetectParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Raw change (eq. 5) of the view's (H, W) ``depth`` and ``classes`` rasters (its
+    surface, or a second depth hypothesis), computed at a resolution where a superpixel cell
+    is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear).
+
+    The graph cut only sees the raw change averaged over superpixels, so sampling it 4 times
+    more coarsely on a 12 MP view changes little and saves most of its cost (docs/BENCHMARKS.md); a 2 MP view
+    (24 px cells) is computed at full resolution. Depth and classes are resampled nearest,
+    so no depth is blended across an occlusion edge.
+    """
+    h, w = depth.shape
+    cell = scale_px(params.graphcut.superpixel_cell_px, w, minimum=2.0)
+    scale = min(1.0, CHANGE_CELL_PX / cell)
+    intr = local.intrinsics
+    hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
+    if (hs, ws) == (h, w):
+        return raw_change(stretched, depth, classes, intr, local.pose, used, params.correlate)
+    sx, sy = ws / w, hs / h
+    small = Intrinsics(
+        ws,
+        hs,
+        intr.fx * sx,
+        intr.fy * sy,
+        (intr.cx + 0.5) * sx - 0.5,
+        (intr.cy + 0.5) * sy - 0.5,
+        intr.dist,
+    )
+    rows, cols = nearest_index(hs, h), nearest_index(ws, w)
+    change, support = raw_change(
+        cv2.resize(stretched, (ws, hs), interpolation=cv2.INTER_AREA),
+        # np.take: contiguous, without the (hs, W) intermediate of a[rows][:, cols]
+        np.take(np.take(depth, rows, axis=0), cols, axis=1),
+        np.take(np.take(classes, rows, axis=0), cols, axis=1),
+        small,
+        local.pose,
+        used,
+        params.correlate,
+    )
+    return (
+        cv2.resize(change, (w, h), interpolation=cv2.INTER_LINEAR),
+        cv2.resize(support, (w, h), interpolation=cv2.INTER_NEAREST),
+    )
+
+
+def _with_near_hypothesis(
+    change: np.ndarray,
+    stretched: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    used: Sequence[Neighbour],
+    params: DetectParams,
+) -> np.ndarray:
+    """``change`` (H, W) float32 under the near-depth hypothesis of :mod:`streetcd.detect.silhouette`:
+    where the hypothesis exists, the smaller of the two raw changes when a neighbour sees the
+    nearer point, else 0 (no neighbour can tell the two apart). Updates ``change`` in place
+    and returns it."""
+    near = near_depth_hypothesis(
+        surf.depth,
+        local.intrinsics.fx,
+        params.correlate.silhouette_margin_m,
+        params.surface.max_depth_jump_m,
+    )
+    if not np.isfinite(near).any():
+        return change
+    near_change, near_support = _raw_change_at_cell_scale(
+        stretched, near, surf.classes, local, used, params
+    )
+    # a pixel that may be the unscanned side of a near object and that no neighbour can
+    # check at that depth gives no evidence, as a pixel that no neighbour sees (eq. 5);
+    # in place: at 12 MP each full-size temporary is 48 MB
+    checked = near_support > 0
+    np.minimum(change, near_change, out=change, where=checked)
+    change[~checked & np.isfinite(near)] = 0.0
+    return change

@@ -1,0 +1,106 @@
+"""The cloud's class codes read as the roles the method needs (not in the paper, which had
+one scanner's classes): a city's codes are mapped by the config's class map
+(:class:`streetcd.config.ClassMap`) to streetcd's codes (:data:`streetcd.classes.ROLES`)
+before the z-buffer, so that every later step (the low-weight classes of eq. 5, the class
+term of eq. 11, the inventory of the appearance and texture cues) reads one coding.
+
+Points in no role take a role inferred from the cloud's geometry
+(:mod:`streetcd.detect.infer_roles`) when the class map's ``infer`` asks for it: ``"auto"``
+when the cloud's classes are of no use (:func:`useless_classes`), ``"always"`` whatever they
+are. The inference runs once per cloud (a per-segment crop is shared by its views).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+
+import numpy as np
+
+from streetcd import classes
+from streetcd.config import ClassMap
+from streetcd.detect.infer_roles import infer_roles
+from streetcd.detect.memo import ArrayMemo
+
+log = logging.getLogger(__name__)
+# the cloud's xyz → its inferred roles, kept while the cloud lives
+_INFERRED = ArrayMemo()
+
+# Below this share of points in a role other than the ground and the road, a cloud's classes
+# tell the detector nothing it uses: the class term and the class weights fall away.
+MIN_USEFUL_SHARE = 0.01
+
+
+@functools.lru_cache(maxsize=8)
+def _table(class_map: ClassMap) -> np.ndarray:
+    return np.asarray(class_map.table(), np.uint8)
+
+
+def role_codes(classification: np.ndarray, class_map: ClassMap) -> np.ndarray:
+    """(N,) uint8 cloud codes → (N,) uint8 streetcd codes; codes in no role become
+    :data:`streetcd.classes.UNCLASSIFIED`."""
+    return _table(class_map)[np.asarray(classification, np.uint8)]
+
+
+def cloud_roles(xyz: np.ndarray, classification: np.ndarray, class_map: ClassMap) -> np.ndarray:
+    """(N,) uint8 streetcd codes of a cloud's points: ``classification`` (N,) uint8 (its own
+    codes) through the class map, and, where ``class_map.infer`` says so, the points in no
+    role given the role :func:`~streetcd.detect.infer_roles.infer_roles` finds from ``xyz``
+    (N, 3) metres. The inference is computed once per ``xyz`` array (it must not change in
+    place while it lives) and kept with it."""
+    roles = role_codes(classification, class_map)
+    if not infers(classification, class_map):
+        return roles
+    unclassified = roles == classes.UNCLASSIFIED
+    if unclassified.any():
+        roles[unclassified] = _INFERRED.get(xyz, _timed_inference)[unclassified]
+    return roles
+
+
+def infers(classification: np.ndarray, class_map: ClassMap) -> bool:
+    """Whether :func:`cloud_roles` infers the roles of a cloud of these classes (N,) uint8."""
+    if class_map.infer == "off" or len(classification) == 0:
+        return False
+    return class_map.infer == "always" or useless_classes(classification, class_map) is not None
+
+
+def _timed_inference(xyz: np.ndarray) -> np.ndarray:
+    start = time.perf_counter()
+    roles = infer_roles(xyz)
+    log.info(
+        "roles of %d points inferred from the geometry in %.2f s (detect.classes.infer)",
+        len(roles),
+        time.perf_counter() - start,
+    )
+    return roles
+
+
+def useless_classes(classification: np.ndarray, class_map: ClassMap) -> str | None:
+    """Why the classes of a cloud (N,) uint8 (its own codes) are of no use to the detector,
+    or None when they are: fewer than ``MIN_USEFUL_SHARE`` of the points are in a role
+    besides the ground and the road (an unclassified cloud, or codes the class map lacks)."""
+    counts = np.bincount(np.asarray(classification, np.uint8), minlength=256)
+    total = int(counts.sum())
+    if total == 0:
+        return None
+    table = _table(class_map)
+    plain = (classes.UNCLASSIFIED, classes.GROUND, classes.ROAD)
+    useful = int(counts[~np.isin(table, plain)].sum())
+    if useful >= MIN_USEFUL_SHARE * total:
+        return None
+    top = ", ".join(
+        f"{code}: {100 * counts[code] / total:.1f} %"
+        for code in np.argsort(counts)[::-1][:4]
+        if counts[code]
+    )
+    meanwhile = (
+        "expect more false alarms on trees and roads"
+        if class_map.infer == "off"
+        else "meanwhile the roles are inferred from the points' geometry (detect.classes.infer)"
+    )
+    return (
+        f"only {100 * useful / total:.2f} % of the reference points have a class the detector "
+        f"uses (vegetation, building, pole, sign, railing, furniture, vehicle; codes by share: "
+        f"{top}): set detect.classes in the config to the cloud's own codes; {meanwhile}"
+    )

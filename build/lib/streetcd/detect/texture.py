@@ -1,0 +1,466 @@
+"""Texture cue (not in the paper): does a neighbour, warped onto the view through the old
+surface, show the same texture there? Normalised cross-correlation over a window.
+
+Eq. 5 compares single pixels, with a tolerance for registration error: grass re-projected
+through a removed pole matches grass a few pixels away, and a removed object in front of a
+homogeneous background (road, pavement, foliage) leaves the pixel colours nearly unchanged.
+The texture of a window does not survive a wrong depth: with the old surface in front of the
+true one, the neighbour's pixels come from the wrong place, shifted by the parallax
+``f · b · (1/z_old − 1/z_true)``, and the window's pattern decorrelates, while gain and offset
+(light, exposure) leave the NCC unchanged.
+
+For every neighbour ``q``, with ``I_p`` the view's grey levels and ``I_qp`` the neighbour's
+warped through the view's surface (eq. 4, :func:`streetcd.detect.correlate.warp_neighbour`),
+over a ``w × w`` window ``N(p)`` of pixels where both are valid::
+
+    ncc_q(p) = cov(I_p, I_qp) / sqrt(var(I_p) · var(I_qp))            over N(p)
+    T_q(p)   = clip(1 − ncc_q(p), 0, 1)   where both standard deviations ≥ min_std
+    T_p      = min_q T_q(p)                (like eq. 5: changed only if no neighbour agrees)
+
+Windows without texture (a standard deviation below ``min_std`` grey levels) give no
+evidence, as do pixels no neighbour sees. Computed at ``scale`` of the view's resolution,
+which helps it tolerate registration error, and never wider than ``max_work_width_px``, which
+bounds its cost on large images.
+
+Registration error is tolerated in two steps: the warped neighbour is first aligned by the one
+whole-pixel shift, up to ``max_global_shift_px``, that best correlates it with the view over
+the pixels away from the wanted ones (pose error moves a view's pixels nearly alike: mostly a
+rotation), then each window takes its best NCC over shifts of up to
+``registration_tolerance_px`` around that (what the alignment leaves: roll, depth parallax).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numba
+import numpy as np
+
+from streetcd.config import TextureParams, scale_px
+from streetcd.detect.correlate import (
+    Neighbour,
+    NeighbourView,
+    camera_rays,
+    warp_neighbour,
+)
+from streetcd.types import Intrinsics, Pose
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 RGB → (H, W) float32 grey levels in [0, 255]."""
+    return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+
+def local_ncc(
+    a: np.ndarray, b: np.ndarray, valid: np.ndarray, window_px: int, min_std: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised cross-correlation of ``a`` and ``b`` (H, W) float32 over ``window_px``
+    square windows of the pixels where ``valid`` (H, W) bool holds.
+
+    Returns ``ncc`` (H, W) float32 in [−1, 1] and ``textured`` (H, W) bool: at least half the
+    window is valid and both standard deviations are ≥ ``min_std``; ncc is 0 elsewhere.
+    """
+    w = valid.astype(np.float32)
+    a = np.where(valid, a, 0.0).astype(np.float32)
+    b = np.where(valid, b, 0.0).astype(np.float32)
+    k = (int(window_px), int(window_px))
+
+    def box(x: np.ndarray) -> np.ndarray:
+        return cv2.boxFilter(x, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+    n = box(w)
+    enough = n >= 0.5 * window_px * window_px
+    n = np.maximum(n, 1.0)
+    ma, mb = box(a) / n, box(b) / n
+    var_a = np.maximum(box(a * a) / n - ma * ma, 0.0)
+    var_b = np.maximum(box(b * b) / n - mb * mb, 0.0)
+    cov = box(a * b) / n - ma * mb
+    floor = np.float32(min_std * min_std)
+    textured = enough & valid & (var_a >= floor) & (var_b >= floor)
+    ncc = np.zeros(a.shape, np.float32)
+    np.divide(cov, np.sqrt(var_a * var_b), out=ncc, where=textured)
+    return np.clip(ncc, -1.0, 1.0), textured
+
+
+def texture_change(
+    image_p: np.ndarray,
+    depth_p: np.ndarray,
+    intrinsics_p: Intrinsics,
+    pose_p: Pose,
+    neighbours: Sequence[NeighbourView],
+    params: TextureParams,
+    occlusion_tolerance_m: float,
+    registration_px: float = 0.0,
+    where: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``T_p`` of the module docstring for view ``p``, at full resolution.
+
+    image_p : (H, W, 3) uint8 RGB. depth_p : (H, W) float32 metres, the view's old surface
+    (NaN = none). neighbours : (image (h, w, 3) uint8 RGB, depth (h, w) float32, intrinsics,
+    pose, holes) per neighbour, poses in the same local frame as ``pose_p``.
+    registration_px : the registration error to tolerate, in full-resolution pixels: each
+    neighbour's NCC is the best over the warped neighbour shifted by up to that much (at the
+    cue's scale), as eq. 5's colour envelope tolerates it for single pixels. where : (H, W)
+    bool, the pixels the cue is wanted at (None: all); only the box around them, grown by
+    the window, is computed, and the cue is 0 outside it. ``params.max_global_shift_px``
+    (at ``REFERENCE_WIDTH_PX``): the largest shift of the whole warped neighbour against the
+    view that :func:`global_shift` looks for (0: none); the shifts of ``registration_px`` are
+    searched around the one found.
+    Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
+    textured evidence per pixel).
+    """
+    h, w = depth_p.shape
+    s = min(float(params.scale), params.max_work_width_px / w)
+    small = (max(1, round(w * s)), max(1, round(h * s)))
+    intr_s = intrinsics_p.scaled(small[0] / w)
+    depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
+    radius = round(registration_px * s)
+    search = round(scale_px(params.max_global_shift_px, w, minimum=0.0) * s)
+    box = _box(where, small, params.window_px + radius + search)
+    change_s = np.zeros(depth_s.shape, np.float32)
+    support_s = np.zeros(depth_s.shape, np.uint8)
+    if box is not None:
+        rows, cols = box
+        grey_p = cv2.resize(grey(image_p), small, interpolation=cv2.INTER_AREA)[rows, cols]
+        rays = camera_rays(intr_s)[rows, cols]
+        depth_b = np.ascontiguousarray(depth_s[rows, cols])
+        change = np.full(depth_b.shape, np.inf, np.float32)
+        support = np.zeros(depth_b.shape, np.uint8)
+        tiles = _tiles_near(where, small, box, reach=params.window_px // 2 + radius)
+        background = _background(where, small, box, params.window_px) if search > 0 else None
+        for nb_image, nb_depth, nb_intr, nb_pose, holes in neighbours:
+            nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
+            warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
+            offset = (0, 0)
+            if background is not None:
+                offset = global_shift(grey_p, warped, valid & background, search)
+            ncc, textured = _best_ncc_on(
+                _reach_for(tiles, offset), grey_p, warped, valid, params, radius, offset
+            )
+            np.minimum(change, np.clip(1.0 - ncc, 0.0, 1.0), out=change, where=textured)
+            support += textured
+        change[support == 0] = 0.0
+        change_s[rows, cols], support_s[rows, cols] = change, support
+    full = cv2.resize(change_s, (w, h), interpolation=cv2.INTER_LINEAR)
+    full[~np.isfinite(depth_p)] = 0.0
+    if where is not None:
+        full[~where] = 0.0
+    return full, cv2.resize(support_s, (w, h), interpolation=cv2.INTER_NEAREST)
+
+
+def _box(
+    where: np.ndarray | None, small: tuple[int, int], margin: int
+) -> tuple[slice, slice] | None:
+    """(rows, cols) of the box around ``where`` at the cue's size ``small`` (W, H), grown by
+    ``margin`` px; the whole image without ``where``; None when ``where`` is empty."""
+    if where is None:
+        return slice(0, small[1]), slice(0, small[0])
+    mask = cv2.resize(where.view(np.uint8), small, interpolation=cv2.INTER_NEAREST)
+    x, y, bw, bh = cv2.boundingRect(mask)
+    if not (bw and bh):
+        return None
+    x0, y0 = max(0, x - margin), max(0, y - margin)
+    x1, y1 = min(small[0], x + bw + margin), min(small[1], y + bh + margin)
+    return slice(y0, y1), slice(x0, x1)
+
+
+TILE_PX = 32
+"""Side of the tiles the cue is computed on (at its working width): only tiles near the wanted
+pixels are computed, each with its context, so the cost follows the inventory's share of the
+image (1-2 % of the pixels, 8-11 % of the tiles on the synthetic streets) and not the box
+around it (most of the image)."""
+
+
+class _Tiles:
+    """The ``TILE_PX`` tiles of a (h, w) box that hold wanted pixels, each padded by ``reach``
+    px of context (the window's half side plus the largest shift), so that the NCC at a tile's
+    pixels computed on its padded copy alone equals the NCC computed on the whole box."""
+
+    def __init__(self, origins: np.ndarray, shape: tuple[int, int], reach: int) -> None:
+        self.origins = origins  # (n, 2) int: (row, col) of each tile's corner in the box
+        self.shape = shape
+        self.reach = reach
+
+    @property
+    def side(self) -> int:
+        return TILE_PX + 2 * self.reach
+
+    def _grid(self) -> tuple[int, int]:
+        """(rows, columns) of the mosaic: near square (OpenCV's box filter is slower on
+        tall, narrow images)."""
+        cols = max(1, int(np.ceil(np.sqrt(len(self.origins)))))
+        return -(-len(self.origins) // cols), cols
+
+    def gather(self, x: np.ndarray, fill: float | bool) -> np.ndarray:
+        """(h, w) → the padded tiles side by side in a mosaic, ``fill`` outside the box."""
+        t, r, side = TILE_PX, self.reach, self.side
+        h, w = self.shape
+        padded = np.full((-(-h // t) * t + 2 * r, -(-w // t) * t + 2 * r), fill, x.dtype)
+        padded[r : r + h, r : r + w] = x
+        rows, cols = self._grid()
+        mosaic = np.full((rows * side, cols * side), fill, x.dtype)
+        for k, (y, c) in enumerate(self.origins):
+            i, j = divmod(k, cols)
+            mosaic[i * side : (i + 1) * side, j * side : (j + 1) * side] = padded[
+                y : y + side, c : c + side
+            ]
+        return mosaic
+
+    def scatter(self, mosaic: np.ndarray, fill: float | bool) -> np.ndarray:
+        """The inverse of :meth:`gather` for the tiles' own pixels: (h, w), ``fill`` elsewhere."""
+        t, r, side = TILE_PX, self.reach, self.side
+        h, w = self.shape
+        out = np.full((-(-h // t) * t, -(-w // t) * t), fill, mosaic.dtype)
+        _, cols = self._grid()
+        for k, (y, c) in enumerate(self.origins):
+            i, j = divmod(k, cols)
+            out[y : y + t, c : c + t] = mosaic[
+                i * side + r : i * side + r + t, j * side + r : j * side + r + t
+            ]
+        return out[:h, :w]
+
+
+def _tiles_near(
+    where: np.ndarray | None, small: tuple[int, int], box: tuple[slice, slice], reach: int
+) -> _Tiles | None:
+    """The tiles of ``box`` (at the cue's size ``small``, (W, H)) within 2 px of a pixel of
+    ``where`` (full resolution; the 2 px cover the upsampling back to it), or None for every
+    pixel of the box (no ``where``)."""
+    if where is None:
+        return None
+    rows, cols = box
+    mask = cv2.resize(where.view(np.uint8), small, interpolation=cv2.INTER_NEAREST)
+    mask = cv2.dilate(mask, np.ones((5, 5), np.uint8))[rows, cols]
+    h, w = mask.shape
+    t = TILE_PX
+    padded = np.zeros((-(-h // t) * t, -(-w // t) * t), np.uint8)
+    padded[:h, :w] = mask
+    wanted = padded.reshape(padded.shape[0] // t, t, padded.shape[1] // t, t).any(axis=(1, 3))
+    return _Tiles(np.argwhere(wanted) * t, (h, w), reach)
+
+
+def _background(
+    where: np.ndarray | None, small: tuple[int, int], box: tuple[slice, slice], margin: int
+) -> np.ndarray:
+    """(h, w) bool over ``box`` at the cue's size ``small`` (W, H): the pixels farther than
+    ``margin`` px from ``where``, on which :func:`global_shift` aligns a neighbour. The wanted
+    pixels are the candidates for change: a removed object's own parallax must not be taken
+    for registration error (on a sparse real cloud the dense objects are most of the surface).
+    """
+    rows, cols = box
+    if where is None:
+        return np.ones((rows.stop - rows.start, cols.stop - cols.start), bool)
+    mask = cv2.resize(where.view(np.uint8), small, interpolation=cv2.INTER_NEAREST)
+    mask = cv2.dilate(mask, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8))
+    return mask[rows, cols] == 0
+
+
+def _reach_for(tiles: _Tiles | None, offset: tuple[int, int]) -> _Tiles | None:
+    """``tiles`` with their context grown by the larger side of ``offset`` (dy, dx): the
+    shifted neighbour's pixels a window reaches must lie in each padded tile."""
+    if tiles is None or offset == (0, 0):
+        return tiles
+    return _Tiles(tiles.origins, tiles.shape, tiles.reach + max(abs(offset[0]), abs(offset[1])))
+
+
+GLOBAL_SHIFT_MIN_PX = 32
+"""The smallest side of an image level :func:`global_shift` searches on (coarser levels have
+too few pixels for a shift to stand out)."""
+
+
+def global_shift(
+    a: np.ndarray, b: np.ndarray, valid: np.ndarray, max_shift: int
+) -> tuple[int, int]:
+    """The whole-pixel shift (dy, dx), each within ``max_shift``, by which ``b`` best matches
+    ``a``: the correlation of their band-passed grey levels over the pixels where both are
+    ``valid``, with ``b[y - dy, x - dx]`` against ``a[y, x]`` (as :func:`_best_ncc`).
+
+    a, b : (H, W) float32 grey levels; valid : (H, W) bool. Searched coarse to fine on an
+    image pyramid (the full square at the coarsest level, ±1 px at each finer one) down to
+    half the input's resolution, so it is exact to ±1 px of the input (the windows' own search
+    covers that) and costs a few passes over a quarter of the pixels whatever ``max_shift``.
+    (0, 0) when nothing correlates.
+    """
+    levels = [(np.asarray(a, np.float32), np.asarray(b, np.float32), np.asarray(valid, bool))]
+    while (max_shift >> len(levels)) >= 1 and min(levels[-1][0].shape) >= 2 * GLOBAL_SHIFT_MIN_PX:
+        levels.append(_half(*levels[-1]))
+    finest = min(1, len(levels) - 1)
+    dy = dx = 0
+    for depth in range(len(levels) - 1, finest - 1, -1):
+        la, lb, lv = levels[depth]
+        coarsest = depth == len(levels) - 1
+        reach = -(-max_shift >> depth) if coarsest else 1  # ceil(max_shift / 2**depth)
+        cy, cx = (0, 0) if coarsest else (2 * dy, 2 * dx)
+        dy, dx = _best_global(_band_pass(la, lv), _band_pass(lb, lv), lv, cy, cx, reach)
+    dy, dx = dy << finest, dx << finest
+    return max(-max_shift, min(max_shift, dy)), max(-max_shift, min(max_shift, dx))
+
+
+def _half(
+    a: np.ndarray, b: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pyramid level down: each 2 × 2 block's mean over its valid pixels, valid where all
+    four are (a block across a hole's edge would carry the edge, alike in both images)."""
+    h, w = a.shape
+    size = (w // 2, h // 2)
+    v = valid[: 2 * size[1], : 2 * size[0]].astype(np.float32)
+    n = np.maximum(cv2.resize(v, size, interpolation=cv2.INTER_AREA), np.float32(1e-6))
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        x = x[: 2 * size[1], : 2 * size[0]] * v
+        return cv2.resize(x, size, interpolation=cv2.INTER_AREA) / n
+
+    return mean(a), mean(b), n > 0.999
+
+
+def _band_pass(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``x`` less its 5 × 5 mean over the valid pixels: the texture, not the light (0 where
+    not valid)."""
+    v = valid.astype(np.float32)
+    k = (5, 5)
+    n = cv2.boxFilter(v, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    s = cv2.boxFilter(x * v, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return np.where(valid, x - s / np.maximum(n, 1.0), 0.0).astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def _best_global(a, b, valid, cy, cx, reach):  # pragma: no cover - numba
+    """The (dy, dx) within ``reach`` of (cy, cx) with the largest correlation
+    sum(a·b') / sqrt(sum a² · sum b'²) over the pixels valid in both, b' = b[y − dy, x − dx];
+    a, b (H, W) float32, valid (H, W) bool. (cy, cx) when no shift has 64 such pixels."""
+    h, w = a.shape
+    best, by, bx = -2.0, cy, cx
+    for dy in range(cy - reach, cy + reach + 1):
+        for dx in range(cx - reach, cx + reach + 1):
+            sab = saa = sbb = 0.0
+            n = 0
+            for y in range(max(0, dy), min(h, h + dy)):
+                for x in range(max(0, dx), min(w, w + dx)):
+                    if valid[y, x] and valid[y - dy, x - dx]:
+                        av, bv = a[y, x], b[y - dy, x - dx]
+                        sab += av * bv
+                        saa += av * av
+                        sbb += bv * bv
+                        n += 1
+            if n >= 64 and saa > 0.0 and sbb > 0.0:
+                c = sab / np.sqrt(saa * sbb)
+                if c > best:
+                    best, by, bx = c, dy, dx
+    return by, bx
+
+
+def _best_ncc_on(
+    tiles: _Tiles | None,
+    a: np.ndarray,
+    b: np.ndarray,
+    valid: np.ndarray,
+    params: TextureParams,
+    radius: int,
+    offset: tuple[int, int] = (0, 0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_best_ncc` on the pixels of ``tiles`` only (all pixels for None); 0 / False
+    elsewhere."""
+    if tiles is None:
+        return _best_ncc(a, b, valid, params, radius, offset)
+    if len(tiles.origins) == 0:
+        return np.zeros(a.shape, np.float32), np.zeros(a.shape, bool)
+    ncc, textured = _best_ncc(
+        tiles.gather(a, 0.0),
+        tiles.gather(b, 0.0),
+        tiles.gather(valid, False),
+        params,
+        radius,
+        offset,
+    )
+    return tiles.scatter(ncc, 0.0), tiles.scatter(textured, False)
+
+
+def _best_ncc(
+    a: np.ndarray,
+    b: np.ndarray,
+    valid: np.ndarray,
+    params: TextureParams,
+    radius: int,
+    offset: tuple[int, int] = (0, 0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`local_ncc` of ``a`` and ``b`` shifted by every whole-pixel offset up to
+    ``radius`` (a square) around ``offset`` (dy, dx), the best at each pixel; textured where
+    any shift is.
+
+    Per shift, one numba pass writes the six products whose window sums the NCC needs
+    (1, a, a², b, b², ab over the pixels valid in both), one six-channel box filter sums
+    them, and a second pass keeps the best NCC: the same numbers as :func:`local_ncc`
+    shift by shift (up to float32 rounding), without its dozen full-size temporaries."""
+    a = np.ascontiguousarray(a, np.float32)
+    b = np.ascontiguousarray(b, np.float32)
+    valid = np.ascontiguousarray(valid, np.bool_)
+    best = np.full(a.shape, -1.0, np.float32)
+    any_textured = np.zeros(a.shape, np.bool_)
+    products = np.empty((6, *a.shape), np.float32)
+    sums = np.empty_like(products)
+    k = int(params.window_px)
+    enough = np.float32(0.5 * k * k)
+    floor = np.float32(params.min_std * params.min_std)
+    oy, ox = offset
+    for dy in range(oy - radius, oy + radius + 1):
+        for dx in range(ox - radius, ox + radius + 1):
+            _products(a, b, valid, dy, dx, products)
+            for c in range(6):  # six planes: one plane at a time is twice as fast in OpenCV
+                cv2.boxFilter(
+                    products[c],
+                    cv2.CV_32F,
+                    (k, k),
+                    sums[c],
+                    normalize=False,
+                    borderType=cv2.BORDER_CONSTANT,
+                )
+            _keep_best(sums, valid, dy, dx, enough, floor, best, any_textured)
+    best[~any_textured] = 0.0
+    return best, any_textured
+
+
+@numba.njit(cache=True, nogil=True)
+def _products(a, b, valid, dy, dx, out):  # pragma: no cover - numba
+    """out[y, x] = (1, a, a², b', b'², a·b') with b' = b[y − dy, x − dx], where both pixels are
+    valid, else zeros. a, b (H, W) float32, valid (H, W) bool, out (6, H, W) float32."""
+    h, w = a.shape
+    for y in range(h):
+        for x in range(w):
+            ys, xs = y - dy, x - dx
+            if valid[y, x] and 0 <= ys < h and 0 <= xs < w and valid[ys, xs]:
+                av, bv = a[y, x], b[ys, xs]
+                out[0, y, x] = 1.0
+                out[1, y, x] = av
+                out[2, y, x] = av * av
+                out[3, y, x] = bv
+                out[4, y, x] = bv * bv
+                out[5, y, x] = av * bv
+            else:
+                for c in range(6):
+                    out[c, y, x] = 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _keep_best(sums, valid, dy, dx, enough, floor, best, any_textured):  # pragma: no cover
+    """The NCC of :func:`local_ncc` from the window sums ``sums`` (6, H, W) of
+    :func:`_products`; ``best`` (H, W) float32 keeps the largest where textured."""
+    h, w = best.shape
+    for y in range(h):
+        for x in range(w):
+            ys, xs = y - dy, x - dx
+            if not (valid[y, x] and 0 <= ys < h and 0 <= xs < w and valid[ys, xs]):
+                continue
+            n = sums[0, y, x]
+            if n < enough:
+                continue
+            ma, mb = sums[1, y, x] / n, sums[3, y, x] / n
+            var_a = max(sums[2, y, x] / n - ma * ma, 0.0)
+            var_b = max(sums[4, y, x] / n - mb * mb, 0.0)
+            if var_a < floor or var_b < floor:
+                continue
+            ncc = (sums[5, y, x] / n - ma * mb) / np.sqrt(var_a * var_b)
+            ncc = min(max(ncc, -1.0), 1.0)
+            any_textured[y, x] = True
+            if ncc > best[y, x]:
+                best[y, x] = ncc
