@@ -120,23 +120,23 @@ def _overlap_block(
     pc = np.matmul(pts, stacked).reshape(b, -1, k, 3) + t[:, None]
     depth = pc[..., 2]
     ahead = depth > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xn = np.where(ahead, pc[..., 0] / depth, np.nan)
-        yn = np.where(ahead, pc[..., 1] / depth, np.nan)
-    for j, o in enumerate(flat):  # rare in practice: most pipelines undistort first
-        if o.intrinsics.has_distortion:
-            i, q = divmod(j, k)
-            xn[i, :, q], yn[i, :, q] = distort(xn[i, :, q], yn[i, :, q], o.intrinsics.dist)
     intr = np.array(
         [[o.intrinsics.fx, o.intrinsics.fy, o.intrinsics.cx, o.intrinsics.cy] for o in flat]
     ).reshape(b, 1, k, 4)
     size = np.array([[o.intrinsics.width, o.intrinsics.height] for o in flat], dtype=np.float64)
     size = size.reshape(b, 1, k, 2)
-    u = intr[..., 0] * xn + intr[..., 2]
-    v = intr[..., 1] * yn + intr[..., 3]
-    with np.errstate(invalid="ignore"):  # NaN (behind the camera) compares False
+    # behind a camera (depth ≤ 0) the quotients are meaningless or NaN; ``ahead`` masks them
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        xn = pc[..., 0] / depth
+        yn = pc[..., 1] / depth
+        for j, o in enumerate(flat):  # rare in practice: most pipelines undistort first
+            if o.intrinsics.has_distortion:
+                i, q = divmod(j, k)
+                xn[i, :, q], yn[i, :, q] = distort(xn[i, :, q], yn[i, :, q], o.intrinsics.dist)
+        u = intr[..., 0] * xn + intr[..., 2]
+        v = intr[..., 1] * yn + intr[..., 3]
         inside = (u >= -0.5) & (u < size[..., 0] - 0.5) & (v >= -0.5) & (v < size[..., 1] - 0.5)
-    shares = np.mean(ahead & inside, axis=1)  # (B, K)
+    shares = np.count_nonzero(ahead & inside, axis=1) / pts.shape[1]  # (B, K)
     return [shares[i, :c].copy() for i, c in enumerate(counts)]
 
 

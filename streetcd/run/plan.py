@@ -384,6 +384,8 @@ def _view_tasks(
     covers its image, pose and camera, the tiles around it and its neighbours'."""
     image_hash = {v.name: file_hash(v.image) for v in views if v.image is not None}
     by_name = {v.name: v for v in views}
+    # once a view, not once more for each view that has it as a neighbour
+    keys = {v.name: view_key(v, image_hash[v.name]) for v in views}
     reach_m = config.detect.max_range_m + 2.0  # crop buffer (1 m) and some slack
     out: dict[str, list[ViewTask]] = {}
     n_skipped = 0
@@ -391,8 +393,8 @@ def _view_tasks(
         todo = out.setdefault(seg.id, [])
         for name, nbrs in zip(seg.views, seg.neighbours, strict=True):
             v = by_name[name]
-            parts = [view_key(v, image_hash[name]), tiles_fingerprint(store, v.center, reach_m)]
-            parts += [view_key(by_name[n], image_hash[n]) for n in nbrs]
+            parts = [keys[name], tiles_fingerprint(store, v.center, reach_m)]
+            parts += [keys[n] for n in nbrs]
             h = hash_text("\n".join(parts))
             key = lasting_key(name, image_hash[name])
             if skip(key, h):
