@@ -81,10 +81,15 @@ def scene_for(size: tuple[int, int]) -> Path:
 
 
 def _fresh_cloud(scene):
-    """The scene's cloud with a colour array no surface cache has seen, so that its colours
-    are converted within the timed call, as for a freshly cropped cloud."""
+    """The scene's cloud with colour and class arrays no surface cache has seen, so that its
+    colours are converted and its classes read as roles within the timed call, as for a
+    freshly cropped cloud."""
     rgb = scene.cloud.rgb
-    return replace(scene.cloud, rgb=None if rgb is None else rgb.copy())
+    return replace(
+        scene.cloud,
+        rgb=None if rgb is None else rgb.copy(),
+        classification=scene.cloud.classification.copy(),
+    )
 
 
 def _setup(size: tuple[int, int]):

@@ -11,6 +11,7 @@ the one orchestration on a real LocalCluster, on one street of the small city (4
 
 from __future__ import annotations
 
+import gc
 import json
 import shutil
 import time
@@ -23,7 +24,7 @@ from test_pipeline import bomb_jpeg
 from streetcd.config import Config, RunParams
 from streetcd.errors import InputError
 from streetcd.run.cluster import dask_client
-from streetcd.run.night import NightInputs, run_night
+from streetcd.run.night import NightInputs, PlainTracker, run_night
 from streetcd.run.summary import EXIT_INPUT, EXIT_OK, EXIT_VIEWS_FAILED, allowed_failures
 from streetcd.store.index import ChangeIndex
 
@@ -146,6 +147,23 @@ def test_smaller_images_are_detected_with_rescaled_intrinsics(small_city, cluste
     with ChangeIndex(tmp_path / "index.sqlite", create=False) as idx:
         for row in idx.query():
             assert cv2.imread(row.mask_path, cv2.IMREAD_UNCHANGED).shape == (135, 240)
+
+
+def test_the_plan_is_out_of_the_cycle_collector_while_the_night_runs_only(
+    small_city, cluster, tmp_path
+):
+    images, poses = one_street(small_city, tmp_path)
+    frozen: list[int] = []
+
+    class Watching(PlainTracker):
+        def each(self, name, fn, items):  # the segments' detection and publishing
+            frozen.append(gc.get_freeze_count())
+            return super().each(name, fn, items)
+
+    summary = night(cluster, small_city, images, poses, tmp_path, tracker=Watching())
+    assert summary.n_done == 4
+    assert frozen and frozen[0] > 1000  # the plan and the imports: not walked by full passes
+    assert gc.get_freeze_count() == 0  # the process gets its collector back
 
 
 def test_poses_in_a_local_frame_stop_the_night_before_it_runs(small_city, cluster, tmp_path):

@@ -149,6 +149,19 @@ def test_auto_infers_only_for_a_cloud_without_useful_classes(scene):
     assert np.all(cloud_roles(xyz, flat, off) == classes.UNCLASSIFIED)
 
 
+def test_roles_are_made_once_per_cloud_and_class_map(scene):
+    xyz, want = scene
+    flat = np.ones(len(xyz), np.uint8)
+    first = cloud_roles(xyz, flat, ClassMap())
+    assert cloud_roles(xyz, flat, ClassMap()) is first  # every surface of the cloud shares it
+    assert not first.flags.writeable  # shared: nobody may change it in place
+    off = cloud_roles(xyz, flat, ClassMap(infer="off"))  # another class map: its own roles
+    assert np.all(off == classes.UNCLASSIFIED) and np.any(first != classes.UNCLASSIFIED)
+    moved = xyz + 100.0  # the same classes over other points: inferred again, not reused
+    again = cloud_roles(moved, flat, ClassMap())
+    assert again is not first and np.array_equal(again, infer_roles(moved))
+
+
 def test_always_fills_in_only_the_unclassified_points(scene):
     xyz, want = scene
     # the car alone has a role (3 % of the points), as the real case's inserted objects

@@ -50,6 +50,10 @@ class SurfaceCache:
             OrderedDict()
         )
         self._bytes = 0
+        # set by the weak references of the entries' clouds when one is freed: looking for
+        # dead entries only then, not at every lookup, spared ~1 ms a lookup with the
+        # ~800 small surfaces a worker keeps on 320 px images (docs/BENCHMARKS.md)
+        self._a_cloud_died = [False]
         self.hits = 0
         self.misses = 0
         self.checksums = ArrayMemo()  # a read-only image → its CRC-32 (:meth:`checksum`)
@@ -100,7 +104,16 @@ class SurfaceCache:
         old = self._entries.pop(key, None)
         if old is not None:
             self._bytes -= _surface_bytes(old[0])
-        self._entries[key] = (surf, weakref.ref(cloud.xyz), weakref.ref(cloud.classification))
+        died = self._a_cloud_died
+
+        def note_death(_: weakref.ref) -> None:
+            died[0] = True  # a flag, not a bound method: no reference back to the cache
+
+        self._entries[key] = (
+            surf,
+            weakref.ref(cloud.xyz, note_death),
+            weakref.ref(cloud.classification, note_death),
+        )
         self._bytes += size
         while self._bytes > self.max_bytes:
             _, (dropped, _, _) = self._entries.popitem(last=False)
@@ -109,6 +122,9 @@ class SurfaceCache:
     def _drop_dead(self) -> None:
         """Forget surfaces of clouds that no longer exist: they can never hit again (a
         flow that crops a new cloud per view leaves only those behind)."""
+        if not self._a_cloud_died[0]:
+            return
+        self._a_cloud_died[0] = False  # before the scan: a death during it is seen next time
         dead = [k for k, (_, xyz, cls) in self._entries.items() if xyz() is None or cls() is None]
         for k in dead:
             self._bytes -= _surface_bytes(self._entries.pop(k)[0])

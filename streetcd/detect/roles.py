@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
+import weakref
 
 import numpy as np
 
@@ -26,6 +27,10 @@ from streetcd.detect.memo import ArrayMemo
 log = logging.getLogger(__name__)
 # the cloud's xyz → its inferred roles, kept while the cloud lives
 _INFERRED = ArrayMemo()
+# the cloud's classification → {(class map, id of its xyz): (xyz, roles)}: every surface of a
+# cloud (the view's and its neighbours') reads the same roles; mapping and checking a
+# 2-million-point cloud once per surface cost ~80 ms of a 2 MP view (docs/BENCHMARKS.md)
+_ROLES = ArrayMemo()
 
 # Below this share of points in a role other than the ground and the road, a cloud's classes
 # tell the detector nothing it uses: the class term and the class weights fall away.
@@ -47,8 +52,23 @@ def cloud_roles(xyz: np.ndarray, classification: np.ndarray, class_map: ClassMap
     """(N,) uint8 streetcd codes of a cloud's points: ``classification`` (N,) uint8 (its own
     codes) through the class map, and, where ``class_map.infer`` says so, the points in no
     role given the role :func:`~streetcd.detect.infer_roles.infer_roles` finds from ``xyz``
-    (N, 3) metres. The inference is computed once per ``xyz`` array (it must not change in
-    place while it lives) and kept with it."""
+    (N, 3) metres. The roles are computed once per ``classification`` and ``xyz`` array (they
+    must not change in place while they live) and kept with them; the array returned is
+    read-only."""
+    kept: dict = _ROLES.get(classification, lambda _: {})
+    hit = kept.get((class_map, id(xyz)))
+    if hit is not None and hit[0]() is xyz:
+        return hit[1]
+    roles = _roles(xyz, classification, class_map)
+    roles.flags.writeable = False
+    for key in [k for k, (ref, _) in kept.items() if ref() is None]:
+        del kept[key]  # an xyz array gone (one classification array seen with several)
+    kept[class_map, id(xyz)] = (weakref.ref(xyz), roles)
+    return roles
+
+
+def _roles(xyz: np.ndarray, classification: np.ndarray, class_map: ClassMap) -> np.ndarray:
+    """:func:`cloud_roles` computed (a new, writeable array)."""
     roles = role_codes(classification, class_map)
     if not infers(classification, class_map):
         return roles

@@ -44,6 +44,12 @@ QUIET_DASK = {
     "distributed.admin.system-monitor.interval": "5s",
     "distributed.worker.memory.monitor-interval": "1s",
     "distributed.worker.profile.enabled": False,
+    # The scheduler keeps the last N messages it sent each worker (and the client the last N
+    # it sent the scheduler), for debugging. At the default 1,000 those held ~2,000 batches'
+    # tasks (each with its views and their neighbours) in the flow process: 290,000 objects
+    # at 1,000 views that every full pass of Python's cycle collector walked, with the GIL
+    # held, while the workers waited for their next batch (docs/BENCHMARKS.md).
+    "distributed.admin.low-level-log-length": 50,
 }
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -155,6 +156,8 @@ def run_night(
     except StreetcdError as exc:  # the night did not run (or not to its end): say why, stop
         write_input_error(inputs.out, exc, started)
         raise
+    finally:
+        gc.unfreeze()  # frozen after planning (_night)
     summary.wall_s = time.perf_counter() - t0
     judge(summary, config.run.max_failed)
     paths = {k: v and str(Path(v).resolve()) for k, v in dataclasses.asdict(inputs).items()}
@@ -189,6 +192,12 @@ def _night(
             plan = tracker.step(
                 "plan-segments", plan_night, inputs, config, retry_failed, log, report.listing
             )
+            # The plan and everything imported live all night: out of the cycle collector's
+            # full passes from here on. Each pass held the GIL for up to 1.5 s on a
+            # 10,000-view night and the workers ran dry meanwhile (docs/BENCHMARKS.md).
+            # Undone when the night ends (run_night): in a long-lived process they become
+            # collectable again.
+            gc.freeze()
             summary = new_summary(plan)
             summary.notes = [*report.notes, *(f"warning: {w}" for w in report.warnings)]
             summary.plan_s = time.perf_counter() - t0
