@@ -210,3 +210,22 @@ def test_crop_for_several_views_is_the_union_of_their_crops(scene, from_files):
     expected = np.unique(np.concatenate([c.gps_time for c in each[:-1]]))
     assert len(union) == len(expected) > max(len(c) for c in each)  # no point twice
     np.testing.assert_array_equal(np.sort(union.gps_time), expected)
+
+
+@pytest.mark.parametrize("from_files", [False, True])
+def test_a_crop_of_some_fields_is_the_whole_crop_without_the_others(scene, from_files):
+    source = scene["files"] if from_files else scene["store"]
+    view = VIEWS[0][0]
+    tile_cache().clear()
+    whole = crop_for_view(source, view, max_range_m=30.0)
+    some = crop_for_view(source, view, max_range_m=30.0, fields=("intensity",))
+    again = crop_for_view(source, view, max_range_m=30.0)  # the cache kept the two apart
+    assert len(whole) > 0 and whole.gps_time is not None and whole.intensity is not None
+    assert some.gps_time is None and some.rgb is None
+    for a, b in ((whole, some), (whole, again)):
+        np.testing.assert_array_equal(a.xyz, b.xyz)
+        np.testing.assert_array_equal(a.classification, b.classification)
+        np.testing.assert_array_equal(a.intensity, b.intensity)
+    np.testing.assert_array_equal(whole.gps_time, again.gps_time)
+    with pytest.raises(InputError, match="crop fields"):
+        crop_for_view(source, view, fields=("colour",))

@@ -67,6 +67,9 @@ def test_local_workers_keep_their_memory_between_views(cluster):
     def malloc_env() -> dict[str, str | None]:
         return {k: os.environ.get(k) for k in WORKER_MALLOC_ENV}
 
+    # the cluster's second worker can still be registering when the first test asks (seen
+    # once: one environment came back)
+    cluster.wait_for_workers(2, timeout=60)
     seen = cluster.run(malloc_env)
     assert len(seen) == 2
     assert all(env == WORKER_MALLOC_ENV for env in seen.values()), seen

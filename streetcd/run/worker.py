@@ -34,7 +34,7 @@ import numpy as np
 
 from streetcd.config import RunParams
 from streetcd.detect.cache import SurfaceCache
-from streetcd.detect.chain import detect_view
+from streetcd.detect.chain import CLOUD_FIELDS, detect_view
 from streetcd.detect.regions import Region
 from streetcd.errors import InputError, MissingInputError
 from streetcd.geometry.frustum import in_frustum
@@ -325,7 +325,7 @@ class WorkerRuntime:
             cloud = (
                 shared
                 if shared is not None
-                else crop_for_view(store, view, max_range_m=max_range_m)
+                else crop_for_view(store, view, max_range_m=max_range_m, fields=CLOUD_FIELDS)
             )
             t1 = time.perf_counter()
             result = detect_view(
@@ -480,7 +480,9 @@ def _crop_segment(batch: Batch, store: TileStore) -> PointCloud | None:
     """The crop of :meth:`WorkerRuntime.segment_cloud`, None when it fails."""
     views = batch.crop_views or batch_views(batch)
     try:
-        return crop_for_views(store, list(views), max_range_m=batch.config.detect.max_range_m)
+        return crop_for_views(
+            store, list(views), max_range_m=batch.config.detect.max_range_m, fields=CLOUD_FIELDS
+        )
     except Exception as exc:  # recorded per view by _detect_one's own crop
         log.warning("segment %s: shared crop failed, cropping per view: %s", batch.segment_id, exc)
         return None

@@ -11,8 +11,10 @@ when its signed distance to each of the four side planes is ≤ ``buffer_m`` and
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +23,9 @@ from streetcd.geometry.frustum import boxes_seen, lookup_box, union_mask
 from streetcd.io.las import iter_las_chunks, las_info
 from streetcd.store.tiles import TileInfo, TileStore
 from streetcd.types import PointCloud, View
+
+# A point's arrays besides xyz and classification, which every crop has.
+OPTIONAL_FIELDS = ("intensity", "rgb", "gps_time")
 
 
 def _check_args(max_range_m: float, buffer_m: float) -> None:
@@ -56,16 +61,19 @@ def crop_for_view(
     *,
     max_range_m: float = 60.0,
     buffer_m: float = 1.0,
+    fields: Sequence[str] | None = None,
 ) -> PointCloud:
     """The points ``view`` can see, local to the store origin.
 
     source : a :class:`TileStore` (or its path), or a list of a few LAS/LAZ files (read
         directly; origin = their minimum corner floored to the kilometre, as ingest picks).
     view : pose in the CRS.
+    fields : the optional point arrays to keep (of ``intensity``, ``rgb``, ``gps_time``), or
+        None for all; a store then reads and decompresses only those.
     Returns a PointCloud (xyz (N, 3) float64 metres, local; classes; RGB when every source
     has it), possibly empty. Tiles come through the process-wide LRU cache.
     """
-    return crop_for_views(source, [view], max_range_m=max_range_m, buffer_m=buffer_m)
+    return crop_for_views(source, [view], max_range_m=max_range_m, buffer_m=buffer_m, fields=fields)
 
 
 def crop_for_views(
@@ -74,8 +82,10 @@ def crop_for_views(
     *,
     max_range_m: float = 60.0,
     buffer_m: float = 1.0,
+    fields: Sequence[str] | None = None,
 ) -> PointCloud:
-    """The points any of ``views`` can see, as one cloud (see :func:`crop_for_view`).
+    """The points any of ``views`` can see, as one cloud (see :func:`crop_for_view`,
+    ``fields`` as there).
 
     A worker that checks several neighbouring views crops once for all of them: each tile is
     read and each point kept once, and the views share one cloud object, so the detector's
@@ -84,12 +94,20 @@ def crop_for_views(
     _check_args(max_range_m, buffer_m)
     if not views:
         raise InputError("crop_for_views: no views given")
+    unknown = set(fields or ()) - set(OPTIONAL_FIELDS)
+    if unknown:
+        raise InputError(f"crop fields {sorted(unknown)}: not among {OPTIONAL_FIELDS}")
     if isinstance(source, (str, Path)) and not str(source).lower().endswith((".las", ".laz")):
         source = TileStore.open(source)
     if isinstance(source, TileStore):
-        return _crop_store(source, views, max_range_m, buffer_m)
+        return _crop_store(source, views, max_range_m, buffer_m, fields)
     paths = [Path(source)] if isinstance(source, (str, Path)) else [Path(p) for p in source]
-    return _crop_files(paths, views, max_range_m, buffer_m)
+    cloud = _crop_files(paths, views, max_range_m, buffer_m)
+    if fields is None:
+        return cloud
+    # LAS files are read whole: the fields left out are dropped after, for the same answer
+    dropped: dict[str, Any] = {f: None for f in OPTIONAL_FIELDS if f not in fields}
+    return dataclasses.replace(cloud, **dropped)
 
 
 def _hits(
@@ -104,7 +122,11 @@ def _hits(
 
 
 def _crop_store(
-    store: TileStore, views: Sequence[View], max_range_m: float, buffer_m: float
+    store: TileStore,
+    views: Sequence[View],
+    max_range_m: float,
+    buffer_m: float,
+    fields: Sequence[str] | None = None,
 ) -> PointCloud:
     candidates: dict[str, TileInfo] = {}  # tile id -> tile, in order of first appearance
     for view in views:
@@ -117,7 +139,7 @@ def _crop_store(
     hits = _hits(views, store.origin, boxes, max_range_m, buffer_m)
     seen = [k for k in range(len(tiles)) if hits[:, k].any()]
     # read together: tiles that share a compressed chunk decompress it once
-    clouds = store.read_tiles([tiles[k].id for k in seen])
+    clouds = store.read_tiles([tiles[k].id for k in seen], fields=fields)
     parts = []
     for k in seen:
         seeing = [v for v, hit in zip(views, hits[:, k], strict=True) if hit]

@@ -69,6 +69,8 @@ from __future__ import annotations
 import functools
 import math
 import os
+import struct
+import sys
 import threading
 import time
 from collections import OrderedDict
@@ -77,9 +79,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import google_crc32c
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec, Crc32cCodec
+from numcodecs import blosc
+from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec
+from zarr.codecs.bytes import Endian
 
 from streetcd.errors import CorruptFileError, InputError, MissingInputError
 from streetcd.types import PointCloud
@@ -91,6 +96,7 @@ COMPRESSORS = (BloscCodec(cname="zstd", clevel=1, shuffle="shuffle"), Crc32cCode
 # zarr leaves out a chunk that is all fill value; the reader takes a missing chunk as damage,
 # so every chunk is written.
 ARRAY_CONFIG: Any = {"write_empty_chunks": True}
+BLOSC_HEADER = 16  # bytes: version, flags, type size, then uncompressed, block, compressed sizes
 INDEX_ATTR = "streetcd_tiles"
 LOCK_NAME = ".lock"
 _SEGMENT_COLUMNS = 11  # i, j, source row, start, count, min xyz, max xyz
@@ -246,16 +252,57 @@ class ChunkError(CorruptFileError):
 def read_chunk(a: Any, folder: Path, c: int) -> np.ndarray:
     """Rows of chunk ``c`` of array ``a`` (in ``folder``), decoded and checksum-checked.
     :class:`ChunkError` when it is missing (zarr would return fill values) or cannot be
-    decoded (checksum, truncation)."""
+    decoded (checksum, truncation).
+
+    A chunk written with :data:`COMPRESSORS` is decoded here (:func:`_decode_chunk`), the
+    same steps in the same order as zarr's pipeline; any other through zarr."""
     rows = a.chunks[0]
     file = chunk_file(a, folder, c)
     if not file.is_file():
         raise ChunkError(file, folder.name, c, "is missing")
     try:
+        if _plain_codecs(a):
+            return _decode_chunk(file.read_bytes(), a, c)
         return np.asarray(a[c * rows : (c + 1) * rows])
     except Exception as exc:
         text = "checksum mismatch" if "checksum" in str(exc) else f"{type(exc).__name__}: {exc}"
         raise ChunkError(file, folder.name, c, f"is damaged ({text})") from None
+
+
+def _plain_codecs(a: Any) -> bool:
+    """Whether array ``a`` is stored as :data:`COMPRESSORS` writes it: little-endian bytes,
+    Blosc, a CRC-32C of the compressed bytes, on a little-endian machine."""
+    codecs: tuple[Any, ...] = tuple(getattr(a.metadata, "codecs", ()))
+    return (
+        sys.byteorder == "little"
+        and a.dtype.byteorder in "=<|"
+        and len(codecs) == 3
+        and isinstance(codecs[0], BytesCodec)
+        and codecs[0].endian in (None, Endian.little)
+        and isinstance(codecs[1], BloscCodec)
+        and isinstance(codecs[2], Crc32cCodec)
+    )
+
+
+def _decode_chunk(stored: bytes, a: Any, c: int) -> np.ndarray:
+    """Rows of chunk ``c`` of ``a`` from its ``stored`` bytes (:func:`_plain_codecs`): the
+    CRC-32C of all but the last 4 bytes must be those 4 (little-endian), Blosc's header must
+    promise exactly the compressed and the chunk's bytes, then Blosc decompresses into the
+    chunk's array. zarr does the same through its asynchronous pipeline, a thread hop per
+    codec: ~2 ms a chunk whatever its size, twice the time of decoding a 3 MB one
+    (docs/BENCHMARKS.md)."""
+    body, crc = stored[:-4], stored[-4:]
+    if len(stored) < 4 + BLOSC_HEADER or google_crc32c.value(body) != int.from_bytes(crc, "little"):
+        raise ValueError("checksum mismatch")
+    out = np.empty(a.chunks, dtype=a.dtype)
+    nbytes, _, cbytes = struct.unpack_from("<III", body, 4)
+    if (nbytes, cbytes) != (out.nbytes, len(body)):
+        raise ValueError(
+            f"Blosc header says {nbytes} bytes from {cbytes}; the chunk has "
+            f"{out.nbytes} from {len(body)}"
+        )
+    blosc.decompress(body, out)
+    return out[: max(min(a.chunks[0], a.shape[0] - c * a.chunks[0]), 0)]
 
 
 # --- the process-wide tile cache ---------------------------------------------------------
@@ -557,9 +604,10 @@ class TileStore:
         chunks: dict[tuple[int, str, int], np.ndarray] | None = None,
     ) -> dict[str, PointCloud]:
         """:meth:`read_tile` for several tiles at once: {tile id: cloud}. ``fields``: read
-        only these of the points' arrays (``xyz`` and ``classification`` always), not
-        through the tile cache (the change objects' road test needs only those two: 13 of
-        the 41 bytes a point holds). ``chunks``: the decompressed chunks, {(source, field,
+        only these of the points' arrays (``xyz`` and ``classification`` always; the
+        change objects' road test needs only those two: 13 of the 41 bytes a point holds,
+        the detector no ``gps_time``); the tile cache keeps a tile read with other fields
+        apart. ``chunks``: the decompressed chunks, {(source, field,
         chunk number): rows}, kept by the caller from call to call (this adds to it; the
         caller bounds it) so that tiles read one at a time decompress a chunk once.
 
@@ -569,8 +617,9 @@ class TileStore:
         chunk the missing tiles need is decompressed once (the gain, per tile and per segment
         crop: docs/BENCHMARKS.md).
         """
-        tc = tile_cache() if cache and fields is None else None
+        tc = tile_cache() if cache else None
         want = None if fields is None else {"xyz", "classification", *fields}
+        which = None if want is None else tuple(sorted(want))
         out: dict[str, PointCloud] = {}
         todo: list[tuple[str, int, TileInfo, tuple]] = []
         for tid in dict.fromkeys(tids):
@@ -578,7 +627,7 @@ class TileStore:
             if row is None:
                 raise MissingInputError(f"{self.path}: no tile {tid!r}")
             info = self.tiles.at(row)
-            key = (str(self.path), tid, tuple((f.key, f.count) for f in info.fragments))
+            key = (str(self.path), tid, tuple((f.key, f.count) for f in info.fragments), which)
             if tc is not None and (hit := tc.get(key)) is not None:
                 out[tid] = hit
             else:
