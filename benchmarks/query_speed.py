@@ -20,6 +20,11 @@ printed: on a shared VM a subprocess time is only comparable within one run.
 
 It also lists which heavy libraries a real ``streetcd query`` imports (numpy, zarr, numba,
 pyproj, yaml ...): none should be needed for a table or JSON answer.
+
+``--against OTHER_VENV/bin`` compares two installs instead (each ``pip install``-ed, not
+editable: an editable install's import hook slows every start): each form as a command of
+the other install and of this interpreter's, alternated run by run, and whether their
+answers are the same bytes.
 """
 
 from __future__ import annotations
@@ -166,6 +171,40 @@ def time_index(index: Path, repeat: int) -> dict[str, Any]:
     return {"index": str(index), "queries": rows, "heavy_imports": heavy}
 
 
+def compare(index: Path, other_bin: Path, repeat: int) -> str:
+    """``--against``: every form as a command of the install in ``other_bin`` (``before``)
+    and of this one (``after``), alternated run by run so that both see the same load;
+    median ms of each, and whether their answers are the same bytes."""
+    installs = {"before": other_bin, "after": BIN}
+    for name, where in installs.items():
+        if not (where / "python").is_file() or not (where / "streetcd").is_file():
+            raise SystemExit(f"--against: no python and streetcd in {where} ({name})")
+    cases = [("(python -c pass)", None)] + [(name, args) for name, args, _ in forms(index)]
+    times: dict[tuple[str, str], list[float]] = {}
+    answers: dict[tuple[str, str], bytes] = {}
+    for _ in range(repeat):
+        for name, args in cases:
+            for which, where in installs.items():
+                cmd = [str(where / "python"), "-c", "pass"]
+                if args is not None:  # through its own python: a copied venv keeps its shebang
+                    cmd = [str(where / "python"), str(where / "streetcd"), "query"]
+                    cmd += ["--index", str(index), *args]
+                t = time.perf_counter()
+                done = subprocess.run(
+                    cmd, capture_output=True, check=True, cwd=tempfile.gettempdir()
+                )
+                times.setdefault((name, which), []).append(time.perf_counter() - t)
+                answers[name, which] = done.stdout
+    lines = [f"{'query':<30} {'before ms':>9} {'after ms':>9}  same answer"]
+    for name, _ in cases:
+        same = answers[name, "before"] == answers[name, "after"]
+        lines.append(
+            f"{name:<30} {1000 * statistics.median(times[name, 'before']):>9.0f}"
+            f" {1000 * statistics.median(times[name, 'after']):>9.0f}  {'yes' if same else 'NO'}"
+        )
+    return "\n".join(lines)
+
+
 def counts(index: Path) -> dict[str, int]:
     uri = index.resolve().as_uri() + "?mode=ro"
     with closing(sqlite3.connect(uri, uri=True)) as conn:
@@ -206,6 +245,12 @@ def main() -> None:
     ap.add_argument("--index", action="append", type=Path, help="a change index (repeatable)")
     ap.add_argument("--repeat", type=int, default=5, help="runs per form (median)")
     ap.add_argument("--json", type=Path, help="also write the results here")
+    ap.add_argument(
+        "--against",
+        type=Path,
+        help="the bin folder of another install (e.g. a venv of an earlier commit): time its "
+        "`streetcd query` and this one's, alternated, form by form (instead of the tables)",
+    )
     a = ap.parse_args()
     indexes = a.index or [p for p in DEFAULT_INDEXES if p.is_file()]
     if not indexes:
@@ -215,6 +260,10 @@ def main() -> None:
         for k, original in enumerate(indexes):
             copy = Path(tmp) / f"{k}-{original.name}"
             shutil.copyfile(original, copy)
+            if a.against is not None:
+                print(f"{original}: {a.against} (before) against {BIN} (after)")
+                print(compare(copy, a.against, a.repeat) + "\n", flush=True)
+                continue
             load0 = os.getloadavg()[0]
             result = time_index(copy, a.repeat)
             result.update(

@@ -95,7 +95,14 @@ def test_view_labels_are_not_shared_between_views(two_nights):
 
 
 @pytest.mark.parametrize(
-    "args", [["--format", "json"], ["--limit", "5"], ["--bbox", "-1e9,-1e9,1e9,1e9"]]
+    "args",
+    [
+        ["--format", "json"],
+        ["--limit", "5"],
+        ["--bbox", "-1e9,-1e9,1e9,1e9"],
+        ["--views"],
+        ["--views", "--format", "json", "--limit", "5"],
+    ],
 )
 def test_the_program_lists_objects_without_click_typing_or_dataclasses(two_nights, args):
     # as a process a query was mostly imports: click (for every other command), typing and
@@ -104,7 +111,24 @@ def test_the_program_lists_objects_without_click_typing_or_dataclasses(two_night
         two_nights, args, ("click", "typing", "dataclasses", "orjson")
     )
     assert loaded == []
-    assert json.loads(answer) if "json" in args else answer.startswith("change objects:")
+    if "json" in args:
+        assert json.loads(answer)["views" if "--views" in args else "objects"]
+    else:
+        assert answer.startswith("flagged segments:" if "--views" in args else "change objects:")
+
+
+def test_the_listings_named_tuples_have_the_records_fields():
+    """`streetcd query --views` makes its rows as named tuples (no dataclasses to import):
+    the same fields in the same order as the index's records, which the index fills by
+    position."""
+    from dataclasses import fields
+
+    from streetcd.cli.query import RegionRow, SegmentTuple, ViewRow
+    from streetcd.store.records import FlaggedRow, RegionRecord, SegmentRow
+
+    for light, record in ((ViewRow, FlaggedRow), (RegionRow, RegionRecord)):
+        assert light._fields == tuple(f.name for f in fields(record))
+    assert SegmentTuple._fields == tuple(f.name for f in fields(SegmentRow))
 
 
 def test_long_and_short_answers_are_the_same_json(two_nights, monkeypatch):

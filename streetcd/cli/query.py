@@ -27,6 +27,7 @@ import argparse
 import math
 import os
 import sys
+from collections import namedtuple
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -38,6 +39,21 @@ if TYPE_CHECKING:
     from typing import Any
 
     from streetcd.store.records import FlaggedRow
+
+
+# A listing's rows as named tuples with the fields of the index's records (FlaggedRow,
+# RegionRecord, SegmentRow), in their order (tests/test_query_output.py checks that they
+# agree): the records are dataclasses, and importing the dataclasses module (inspect under
+# it) was a good part of a short `streetcd query --views` (docs/BENCHMARKS.md).
+ViewRow = namedtuple(
+    "ViewRow",
+    "view segment_id score changed_fraction n_regions mask_path overlay_path detected_at "
+    "center regions captured_at image",
+)
+RegionRow = namedtuple(
+    "RegionRow", "label pixels score centroid bbox_min bbox_max dominant_class foot_class"
+)
+SegmentTuple = namedtuple("SegmentTuple", "segment_id n_views length_m bbox polyline")
 
 
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
@@ -62,18 +78,14 @@ def _fraction(name: str, value: float | None) -> float | None:
     return value
 
 
-def rows_as_json(rows: Sequence[FlaggedRow]) -> list[dict]:
-    """Query rows (flagged views) as plain dicts (coordinates in the index's CRS): ``id`` the
-    view's lasting key, ``image`` its file name, ``segment``, ``score``, and every field of
-    :class:`~streetcd.store.records.FlaggedRow`, its regions as dicts of every field of
+def rows_as_json(rows: Sequence[FlaggedRow | ViewRow]) -> list[dict]:
+    """Query rows (flagged views, :class:`ViewRow` or
+    :class:`~streetcd.store.records.FlaggedRow`) as plain dicts (coordinates in the index's
+    CRS): ``id`` the view's lasting key, ``image`` its file name, ``segment``, ``score``, and
+    every field of the row, its regions as dicts of every field of
     :class:`~streetcd.store.records.RegionRecord` (what ``dataclasses.asdict`` gives, which
     copied every value and took most of the 8,280 views' 9 s)."""
-    from dataclasses import fields
-
-    from streetcd.store.records import FlaggedRow, RegionRecord
-
-    row_fields = [f.name for f in fields(FlaggedRow)]
-    region_fields = [f.name for f in fields(RegionRecord)]
+    row_fields, region_fields = ViewRow._fields, RegionRow._fields
     out = []
     for r in rows:
         d: dict[str, Any] = {
@@ -256,6 +268,7 @@ def run_query(
         from streetcd.store.geojson import objects_to_geojson
 
         return _geojson_text(objects_to_geojson(objects, crs, wgs84=not native_crs))
+    light = fmt != "geojson"  # the GeoJSON writer uses the records' own properties
     with ChangeIndex(index, readonly=True) as idx:
         rows = idx.query(
             segment=segment,
@@ -265,8 +278,12 @@ def run_query(
             detected_since=detected_since,
             sort=sort,  # score: best first; time: latest capture (else detection) first
             limit=limit,
+            records=(ViewRow, RegionRow) if light else None,
         )
-        segments = idx.segments(ids=sorted({r.segment_id for r in rows if r.segment_id}))
+        segments = idx.segments(
+            ids=sorted({r.segment_id for r in rows if r.segment_id}),
+            record=SegmentTuple if light else None,
+        )
         if fmt == "table":
             return segments_table(rows, segments) + "\n\n" + rows_as_table(rows)
         if fmt == "json":

@@ -34,7 +34,7 @@ from __future__ import annotations
 import json
 import math
 import sqlite3
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -449,6 +449,7 @@ class ChangeIndex:
         detected_since: str | None = None,
         sort: str | None = None,
         limit: int | None = None,
+        records: tuple[Callable[..., Any], Callable[..., Any]] | None = None,
     ) -> list[FlaggedRow]:
         """Flagged views matching every filter given, ordered by segment then view.
 
@@ -464,6 +465,10 @@ class ChangeIndex:
         sort : ``score`` (best first, then view) or ``time`` (latest capture, else detection,
         first; then as ``score``) instead of segment and view. limit : at most this many
         (≥ 0). Both are done by SQLite, so that the first rows of a big index come fast.
+        records : the (row, region) types to make, called with the fields of
+        :class:`FlaggedRow` and :class:`RegionRecord` in their order; default those two.
+        ``streetcd query`` passes named tuples, which need no import of the dataclasses
+        module (docs/BENCHMARKS.md).
         """
         if sort not in QUERY_ORDER:
             raise InputError(f"sort {sort!r} must be one of {', '.join(map(str, QUERY_ORDER))}")
@@ -498,16 +503,18 @@ class ChangeIndex:
         )
         sql += limit_clause(limit)
         rows = self.conn.execute(sql, args).fetchall()
-        from streetcd.store.records import FlaggedRow  # once a query, not once a row
+        if records is None:  # once a query, not once a row
+            from streetcd.store.records import FlaggedRow, RegionRecord
 
-        regions = self._regions_of([r["id"] for r in rows])
-        return [_flagged_row(FlaggedRow, r, regions.get(r["id"], ())) for r in rows]
+            records = (FlaggedRow, RegionRecord)
+        regions = self._regions_of([r["id"] for r in rows], records[1])
+        return [_flagged_row(records[0], r, regions.get(r["id"], ())) for r in rows]
 
-    def _regions_of(self, ids: Sequence[int]) -> dict[int, tuple[RegionRecord, ...]]:
-        """The regions of flagged rows ``ids``, by row id, each in label order: one query per
-        500 rows (one per row was most of a big query's time)."""
-        from streetcd.store.records import RegionRecord  # once, not once a region
-
+    def _regions_of(
+        self, ids: Sequence[int], record: Callable[..., Any]
+    ) -> dict[int, tuple[RegionRecord, ...]]:
+        """The regions of flagged rows ``ids`` as ``record``, by row id, each in label
+        order: one query per 500 rows (one per row was most of a big query's time)."""
         out: dict[int, list[RegionRecord]] = {}
         for k in range(0, len(ids), 500):
             chunk = ids[k : k + 500]
@@ -516,15 +523,18 @@ class ChangeIndex:
                 " ORDER BY flagged_id, label",
                 chunk,
             ):
-                out.setdefault(g["flagged_id"], []).append(_region(RegionRecord, g))
+                out.setdefault(g["flagged_id"], []).append(_region(record, g))
         return {k: tuple(v) for k, v in out.items()}
 
     def segments(
         self,
         ids: Iterable[str] | None = None,
         bbox: tuple[float, float, float, float] | None = None,
+        record: Callable[..., Any] | None = None,
     ) -> list[SegmentRow]:
-        """Segments by id and/or whose box intersects ``bbox`` (R*Tree), ordered by id."""
+        """Segments by id and/or whose box intersects ``bbox`` (R*Tree), ordered by id;
+        ``record`` the type to make, called with :class:`SegmentRow`'s fields in their order
+        (default that class; see :meth:`query`)."""
         where: list[str] = []
         args: list[Any] = []
         if ids is not None:
@@ -540,10 +550,12 @@ class ChangeIndex:
             args += [mnx, mxx, mny, mxy]
         sql = "SELECT * FROM segments s" + (" WHERE " + " AND ".join(where) if where else "")
         rows = self.conn.execute(sql + " ORDER BY s.segment_id", args).fetchall()
-        from streetcd.store.records import SegmentRow
+        if record is None:
+            from streetcd.store.records import SegmentRow
 
+            record = SegmentRow
         return [
-            SegmentRow(
+            record(
                 r["segment_id"],
                 r["n_views"],
                 r["length_m"],
@@ -573,7 +585,7 @@ class ChangeIndex:
 
 
 def _flagged_row(
-    record: type[FlaggedRow], r: sqlite3.Row, regions: tuple[RegionRecord, ...]
+    record: Callable[..., Any], r: sqlite3.Row, regions: tuple[RegionRecord, ...]
 ) -> FlaggedRow:
     """A ``flagged`` ⋈ ``views`` row as ``record`` (:class:`FlaggedRow`, passed in: the
     records load with the first query, not with this module)."""
@@ -594,7 +606,7 @@ def _flagged_row(
     )
 
 
-def _region(record: type[RegionRecord], g: sqlite3.Row) -> RegionRecord:
+def _region(record: Callable[..., Any], g: sqlite3.Row) -> RegionRecord:
     """A ``regions`` row as ``record`` (:class:`RegionRecord`), x/y/z triples None where not
     located."""
 
