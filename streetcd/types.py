@@ -120,12 +120,18 @@ class Pose:
 
         Used to move a georeferenced pose into a local frame: ``X_local = X - origin``.
         """
-        # R is unchanged and already validated: skip __post_init__ (planning shifts every
-        # view many times, and the orthonormality check dominated that).
+        # R is unchanged and already validated (planning shifts every view many times, and
+        # the orthonormality check dominated that)
         center = self.center - np.asarray(origin, dtype=np.float64)
-        pose = object.__new__(Pose)
-        object.__setattr__(pose, "R", self.R)
-        object.__setattr__(pose, "t", -self.R @ center)
+        return Pose.of_rotation(self.R, -self.R @ center)
+
+    @classmethod
+    def of_rotation(cls, R: np.ndarray, t: np.ndarray) -> Pose:
+        """``Pose(R, t)`` without its checks, for an ``R`` that is a (3, 3) float64 rotation
+        by construction and a finite (3,) float64 ``t``: the caller vouches for both."""
+        pose = object.__new__(cls)
+        object.__setattr__(pose, "R", R)
+        object.__setattr__(pose, "t", t)
         return pose
 
 

@@ -114,3 +114,38 @@ def test_neighbours_of_many_views_at_once_equal_one_view_at_a_time():
         assert [s.tolist() for s in small] == [
             neighbours.overlaps(v, c).tolist() for v, c in zip(views, candidates, strict=True)
         ]
+
+
+def test_overlap_counts_the_samples_the_other_camera_projects_into_its_image():
+    """The compiled count (:func:`_seen_counts`) against the library's own projection,
+    ``camera.project``, sample by sample: in front and inside the pixel border, a distorted
+    camera and cameras looking away included (up to rounding at the border)."""
+    from dataclasses import replace
+
+    from streetcd.geometry.camera import project
+    from streetcd.geometry.neighbours import frustum_samples, overlaps
+    from streetcd.types import Pose
+
+    bent = Intrinsics(640, 360, 420.0, 430.0, 319.5, 179.5, (-0.2, 0.05, 0.001, -0.002, 0.01))
+    p = view("p.jpg", 0.0)
+    others = [
+        view("q.jpg", 3.0),
+        view("away.jpg", 1.0, heading=-1.0),
+        replace(view("bent.jpg", 2.5), intrinsics=bent),
+        view("side.jpg", 6.0, y=12.0),
+    ]
+    # the samples in a frame at p's centre, as the kernel sees them, and each camera there
+    local = replace(p, pose=Pose.from_center(p.pose.R, np.zeros(3)))
+    samples = frustum_samples(local)
+    expected = []
+    for q in others:
+        moved = Pose.from_center(q.pose.R, q.center - p.center)
+        uv, depth = project(samples, q.intrinsics, moved)
+        w, h = q.intrinsics.width, q.intrinsics.height
+        with np.errstate(invalid="ignore"):
+            inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)
+            inside &= (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5)
+        expected.append(np.count_nonzero((depth > 0) & inside) / len(samples))
+    got = overlaps(p, others)
+    assert got.tolist() == pytest.approx(expected, abs=1.5 / len(samples))
+    assert got[1] == 0.0 and 0.0 < got[2] < 1.0 and got[0] > got[3]

@@ -181,6 +181,25 @@ def test_tiles_read_together_equal_tiles_read_one_by_one(archive, tmp_path, monk
         store.read_tiles([tids[0], "999_999"])
 
 
+def test_a_store_keeps_few_sources_open_and_reads_the_same(archive, tmp_path, monkeypatch):
+    """The open sources are an LRU (a city's thousands are not all kept): with room for one,
+    every tile reads the same points as with room for all, and one source stays open."""
+    d, _ = archive
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000)
+    roomy = TileStore.open(tmp_path / "s.zarr")
+    assert len(roomy.sources) > 1
+    tids = sorted(roomy.tiles)
+    want = roomy.read_tiles(tids, cache=False)
+    monkeypatch.setattr(store_tiles, "SOURCES_OPEN", 1)
+    tight = TileStore.open(tmp_path / "s.zarr")
+    for tid in tids:  # one tile at a time, so sources are opened again and again
+        got = tight.read_tiles([tid], cache=False)[tid]
+        assert len(tight._arrays) == 1
+        for name in ("xyz", "classification", "intensity", "rgb", "gps_time"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want[tid], name))
+    assert len(roomy._arrays) == len(roomy.sources)
+
+
 def test_a_corrupt_chunk_in_the_store_names_the_file_and_field(archive, tmp_path):
     d, _ = archive
     ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000)

@@ -10,17 +10,18 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numba
 import numpy as np
 
 from streetcd.config import CorrelateParams, scale_px
-from streetcd.geometry.camera import distort, pixel_rays
+from streetcd.geometry.camera import pixel_rays
 from streetcd.types import Intrinsics, View
 
 DEPTHS_M = (5.0, 10.0, 20.0, 40.0)  # street objects lie 10–30 m away (paper §4)
 GRID = 12  # sample rays per image side
 PARALLAX_DEPTH_M = 20.0  # the parallax of a neighbour is judged at this depth (10–30 m above)
 MIN_PARALLAX_PX = CorrelateParams.min_parallax_px  # px at REFERENCE_WIDTH_PX (the config's)
-BLOCK_VIEWS = 128  # views projected per numpy call when planning (~40 MB of samples)
+BLOCK_VIEWS = 128  # views projected per kernel call when planning (~2 MB of samples)
 
 
 def camera_samples(
@@ -75,9 +76,10 @@ def overlaps_many(
     (len(others_of[i]),) float64 arrays.
 
     Batched projections, ``block`` views at a time: the frustum samples of every view into
-    all of its candidates in one numpy call. Planning a city calls this for every view, and
-    one call per view spent its time in numpy's per-call overhead (10 s of a 10,000-view
-    plan, docs/BENCHMARKS.md).
+    all of its candidates in one call of a compiled kernel (:func:`_seen_counts`). Planning
+    a city calls this for every view: one numpy call per view spent its time in numpy's
+    per-call overhead (10 s of a 10,000-view plan), and batched numpy calls in their
+    temporaries (3.5 s; docs/BENCHMARKS.md).
     """
     out: list[np.ndarray] = []
     cam_samples: dict[Intrinsics, np.ndarray] = {}  # rays × depths in a camera's own frame
@@ -114,30 +116,68 @@ def _overlap_block(
     centres = np.stack([v.center for v in views])
     offset = np.stack([o.center for o in flat]).reshape(b, k, 3) - centres[:, None, :]
     t = np.matmul(-R, offset[..., None])[..., 0]  # (B, K, 3): each candidate's t, local
-    # x_cam = R X + t for every sample and candidate, (B, N, K, 3): one (N, 3) @ (3, 3K)
-    # product per view (the candidates' Rᵀ side by side), 2.4× faster than (K, N, 3) stacks
-    stacked = np.ascontiguousarray(R.transpose(0, 3, 1, 2).reshape(b, 3, 3 * k))
-    pc = np.matmul(pts, stacked).reshape(b, -1, k, 3) + t[:, None]
-    depth = pc[..., 2]
-    ahead = depth > 0
-    intr = np.array(
+    cams = np.array(
         [[o.intrinsics.fx, o.intrinsics.fy, o.intrinsics.cx, o.intrinsics.cy] for o in flat]
-    ).reshape(b, 1, k, 4)
+    ).reshape(b, k, 4)
     size = np.array([[o.intrinsics.width, o.intrinsics.height] for o in flat], dtype=np.float64)
-    size = size.reshape(b, 1, k, 2)
-    # behind a camera (depth ≤ 0) the quotients are meaningless or NaN; ``ahead`` masks them
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        xn = pc[..., 0] / depth
-        yn = pc[..., 1] / depth
-        for j, o in enumerate(flat):  # rare in practice: most pipelines undistort first
-            if o.intrinsics.has_distortion:
-                i, q = divmod(j, k)
-                xn[i, :, q], yn[i, :, q] = distort(xn[i, :, q], yn[i, :, q], o.intrinsics.dist)
-        u = intr[..., 0] * xn + intr[..., 2]
-        v = intr[..., 1] * yn + intr[..., 3]
-        inside = (u >= -0.5) & (u < size[..., 0] - 0.5) & (v >= -0.5) & (v < size[..., 1] - 0.5)
-    shares = np.count_nonzero(ahead & inside, axis=1) / pts.shape[1]  # (B, K)
+    dist = np.array([o.intrinsics.dist for o in flat], dtype=np.float64).reshape(b, k, 5)
+    seen = _seen_counts(pts, np.ascontiguousarray(R), t, cams, size.reshape(b, k, 2), dist)
+    shares = seen / pts.shape[1]  # (B, K)
     return [shares[i, :c].copy() for i, c in enumerate(counts)]
+
+
+@numba.njit(cache=True, nogil=True)
+def _seen_counts(
+    pts: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    cams: np.ndarray,
+    size: np.ndarray,
+    dist: np.ndarray,
+) -> np.ndarray:
+    """(B, K) int64: how many of view b's samples ``pts[b]`` ((B, N, 3) metres, in a frame at
+    its centre) candidate k sees: ``x_cam = R[b, k] X + t[b, k]`` in front (z > 0) and its
+    pixel ``u = fx x' + cx``, ``v = fy y' + cy`` inside the image (``size[b, k]`` = W, H;
+    pixel border at −0.5 and W − 0.5), with ``(x', y')`` the normalised coordinates
+    distorted by ``dist[b, k]`` (k1, k2, p1, p2, k3; :func:`streetcd.geometry.camera.distort`).
+
+    One fused pass: the numpy version made a dozen (B, N, K) temporaries and took 3.5 s of a
+    10,000-view plan (docs/BENCHMARKS.md)."""
+    nb, n_samples, nk = pts.shape[0], pts.shape[1], R.shape[1]
+    out = np.zeros((nb, nk), dtype=np.int64)
+    for b in range(nb):
+        for k in range(nk):
+            r = R[b, k]
+            fx, fy, cx, cy = cams[b, k, 0], cams[b, k, 1], cams[b, k, 2], cams[b, k, 3]
+            w, h = size[b, k, 0], size[b, k, 1]
+            k1, k2, p1, p2, k3 = (
+                dist[b, k, 0],
+                dist[b, k, 1],
+                dist[b, k, 2],
+                dist[b, k, 3],
+                dist[b, k, 4],
+            )
+            distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
+            count = 0
+            for n in range(n_samples):
+                px, py, pz = pts[b, n, 0], pts[b, n, 1], pts[b, n, 2]
+                z = r[2, 0] * px + r[2, 1] * py + r[2, 2] * pz + t[b, k, 2]
+                if not z > 0.0:
+                    continue
+                xn = (r[0, 0] * px + r[0, 1] * py + r[0, 2] * pz + t[b, k, 0]) / z
+                yn = (r[1, 0] * px + r[1, 1] * py + r[1, 2] * pz + t[b, k, 1]) / z
+                if distorted:
+                    r2 = xn * xn + yn * yn
+                    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+                    yn = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+                    xn = xd
+                u = fx * xn + cx
+                v = fy * yn + cy
+                if u >= -0.5 and u < w - 0.5 and v >= -0.5 and v < h - 0.5:
+                    count += 1
+            out[b, k] = count
+    return out
 
 
 def select_neighbours(

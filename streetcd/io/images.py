@@ -12,7 +12,9 @@ name: a PNG named ``.jpg`` is read as a PNG.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
+import os
 import struct
 import warnings
 from dataclasses import dataclass
@@ -39,11 +41,26 @@ def list_images(folder: str | Path) -> dict[str, Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise MissingInputError(f"images folder not found: {folder}")
-    return {
-        p.name: p
-        for p in sorted(folder.iterdir())
-        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-    }
+    # scandir's entries know their type from the directory itself: no stat per image (a
+    # city's folder holds tens of thousands)
+    with os.scandir(folder) as entries:
+        names = [
+            e.name
+            for e in entries
+            if os.path.splitext(e.name)[1].lower() in IMAGE_SUFFIXES and _is_file(e)
+        ]
+    return {name: folder / name for name in sorted(names)}
+
+
+def _is_file(entry: os.DirEntry[str]) -> bool:
+    """``entry.is_file()`` as ``Path.is_file`` answers it: False, not an error, for a
+    dangling link or a loop of links (those are not images of the folder)."""
+    try:
+        return entry.is_file()
+    except OSError as exc:
+        if exc.errno in (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP):
+            return False
+        raise
 
 
 def read_image(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:

@@ -178,15 +178,20 @@ def _pose(where: str, R: np.ndarray, t: np.ndarray) -> Pose:
         raise InputError(f"{where}: {exc}") from None
 
 
-def _pose_at(where: str, R: np.ndarray, center: np.ndarray) -> Pose:
-    """The pose of a camera at ``center`` (world, metres) turned by world→camera ``R``;
-    InputError naming ``where`` and the centre when ``t = -R C`` is not finite (finite
-    coordinates near 1e308 overflow it: a fuzzed file, no survey)."""
+def _opk_pose(where: str, num: dict[str, float]) -> Pose:
+    """The pose of a camera at ``num``'s x, y, z (world, metres) turned by its omega, phi,
+    kappa (degrees; :func:`~streetcd.geometry.camera.opk_to_rotation`); InputError naming
+    ``where`` and the centre when ``t = -R C`` is not finite (finite coordinates near 1e308
+    overflow it: a fuzzed file, no survey)."""
+    R = opk_to_rotation(num["omega"], num["phi"], num["kappa"])
+    center = np.array([num["x"], num["y"], num["z"]])
     with np.errstate(over="ignore", invalid="ignore"):
-        t = -R @ np.asarray(center, dtype=np.float64)
-    if not np.all(np.isfinite(t)):
-        raise InputError(f"{where}: fields 'x, y, z' = {np.asarray(center).tolist()} are too large")
-    return _pose(where, R, t)
+        t = -R @ center
+    if not np.isfinite(t).all():
+        raise InputError(f"{where}: fields 'x, y, z' = {center.tolist()} are too large")
+    # a product of three rotations of finite angles: Pose's rotation test (a third of
+    # reading a city's pose file) has nothing to find
+    return Pose.of_rotation(R, t)
 
 
 def _intrinsics_from_colmap(model: str, width: int, height: int, p: dict[str, float]) -> Intrinsics:
@@ -702,12 +707,10 @@ def _opk_row(
     intr = _intrinsics(
         f"{path}:{number}", width, height, num["fx"], num["fy"], num["cx"], num["cy"], dist
     )
-    R = opk_to_rotation(num["omega"], num["phi"], num["kappa"])
-    center = np.array([num["x"], num["y"], num["z"]])
     image = Path(image_dir) / name if image_dir is not None else None
     time = (row.get("time") or "").strip()
     t = _finite(time, path, number, "time") if time else float(order)
-    return View(name, intr, _pose_at(f"{path}:{number}", R, center), image, t)
+    return View(name, intr, _opk_pose(f"{path}:{number}", num), image, t)
 
 
 # --- Pix4D and Metashape OPK exports ---------------------------------------------------
@@ -755,8 +758,7 @@ def _opk_view(
     """A View from centre x, y, z and omega, phi, kappa (degrees) given as text."""
     _checked_name(name, path, line)
     num = {f: _finite(values.get(f, ""), path, line, f) for f in PIX4D_HEADER[1:]}
-    R = opk_to_rotation(num["omega"], num["phi"], num["kappa"])
-    pose = _pose_at(where, R, np.array([num["x"], num["y"], num["z"]]))
+    pose = _opk_pose(where, num)
     image = Path(image_dir) / name if image_dir is not None else None
     return View(name, intr, pose, image, float(order))
 

@@ -144,16 +144,29 @@ def store_identity(store: TileStore) -> str:
     return hash_text(json.dumps(store.index, sort_keys=True, default=str))
 
 
-def tiles_fingerprint(store: TileStore, center: np.ndarray, radius_m: float) -> str:
+def tiles_fingerprint(
+    store: TileStore,
+    center: np.ndarray,
+    radius_m: float,
+    memo: dict[str, str] | None = None,
+) -> str:
     """Hash of the tiles (id, fragments, counts) within ``radius_m`` of ``center`` (CRS).
 
     The view's cloud is cropped from a subset of these (the frustum is range-limited), so
-    ingesting a new MLS file changes the hash of exactly the views it can affect.
+    ingesting a new MLS file changes the hash of exactly the views it can affect. ``memo``
+    ({tile id: its text}) keeps each tile's text for the next view: neighbouring views share
+    most of their tiles.
     """
     c = np.asarray(center, dtype=np.float64)
     tiles = store.tiles_in_bbox(c[0] - radius_m, c[1] - radius_m, c[0] + radius_m, c[1] + radius_m)
-    parts = sorted(f"{t.id}:" + ",".join(f"{f.key}/{f.count}" for f in t.fragments) for t in tiles)
-    return hash_text(";".join(parts))
+    memo = {} if memo is None else memo
+    parts = []
+    for t in tiles:
+        text = memo.get(t.id)
+        if text is None:
+            text = memo[t.id] = f"{t.id}:" + ",".join(f"{f.key}/{f.count}" for f in t.fragments)
+        parts.append(text)
+    return hash_text(";".join(sorted(parts)))
 
 
 @dataclass(frozen=True)
@@ -360,7 +373,10 @@ def readable_images(
     for name, path in files.items():
         shown = os.fsencode(name).decode("utf-8", "backslashreplace")
         try:
-            target = path.resolve(strict=True)
+            # a file that is no link, directly in the resolved folder, is where it is: one
+            # lstat, not realpath's walk up every folder of its path
+            direct = path.parent == images and not os.path.islink(path)
+            target = path if direct else path.resolve(strict=True)
         except (OSError, RuntimeError) as exc:  # a dangling link, a loop of links
             refused[shown] = (f"{images / shown}: cannot be resolved: {exc}", None)
             continue
@@ -389,11 +405,12 @@ def _view_tasks(
     reach_m = config.detect.max_range_m + 2.0  # crop buffer (1 m) and some slack
     out: dict[str, list[ViewTask]] = {}
     n_skipped = 0
+    tile_texts: dict[str, str] = {}  # tiles_fingerprint's memo
     for seg in segments:
         todo = out.setdefault(seg.id, [])
         for name, nbrs in zip(seg.views, seg.neighbours, strict=True):
             v = by_name[name]
-            parts = [keys[name], tiles_fingerprint(store, v.center, reach_m)]
+            parts = [keys[name], tiles_fingerprint(store, v.center, reach_m, tile_texts)]
             parts += [keys[n] for n in nbrs]
             h = hash_text("\n".join(parts))
             key = lasting_key(name, image_hash[name])

@@ -102,6 +102,7 @@ LOCK_NAME = ".lock"
 _SEGMENT_COLUMNS = 11  # i, j, source row, start, count, min xyz, max xyz
 CACHE_ENV = "STREETCD_TILE_CACHE_MB"  # MiB of the process-wide tile cache
 DEFAULT_CACHE_MB = "256"
+SOURCES_OPEN = 64  # sources whose zarr arrays a TileStore keeps open (least recently used out)
 
 
 # --- the index ---------------------------------------------------------------------------
@@ -452,7 +453,9 @@ class TileStore:
         self._counts = (
             np.add.reduceat(segments[:, 4], self._first) if len(segments) else np.zeros(0, int)
         )
-        self._arrays: dict[int, dict[str, Any]] = {}  # source row → its zarr arrays
+        # source row → its zarr arrays, the last SOURCES_OPEN used (an LRU)
+        self._arrays: OrderedDict[int, dict[str, Any]] = OrderedDict()
+        self._arrays_lock = threading.Lock()
         self.tiles = _TileTable(self)
 
     @classmethod
@@ -660,14 +663,23 @@ class TileStore:
     def _source_arrays(self, source: int) -> dict[str, Any]:
         """{field: zarr array} of a source, each checked against the manifest its file
         record holds (dtype, shape, chunk rows); CorruptFileError names the array's file."""
-        arrays = self._arrays.get(source)
-        if arrays is None:
-            path, key = self.sources[source]
-            folder = self.path / "points" / key
-            arrays = {}
-            for name, want in self._manifest(path).items():
-                arrays[name] = open_field(folder / name, want, path)
+        with self._arrays_lock:
+            arrays = self._arrays.get(source)
+            if arrays is not None:
+                self._arrays.move_to_end(source)
+                return arrays
+        path, key = self.sources[source]
+        folder = self.path / "points" / key
+        arrays = {}
+        for name, want in self._manifest(path).items():
+            arrays[name] = open_field(folder / name, want, path)
+        with self._arrays_lock:
             self._arrays[source] = arrays
+            # A city's store has thousands of sources; kept all night, their zarr objects
+            # (tens each) were most of what the flow process's cycle collector walked
+            # (docs/BENCHMARKS.md). A crop or a road test touches a handful at a time.
+            while len(self._arrays) > SOURCES_OPEN:
+                self._arrays.popitem(last=False)
         return arrays
 
     def _manifest(self, path: str) -> dict[str, dict[str, Any]]:
