@@ -55,6 +55,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from query_speed import middle_bbox  # noqa: E402  (a box around a change, not between copies)
 from throughput import load, warm_up  # noqa: E402  (the sibling benchmark's helpers)
 
+from streetcd.config import RunParams  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 BASE_VIEWS = 1000  # views of the rendered city; bigger cities are copies of it
@@ -411,7 +413,9 @@ def main() -> None:
     ap.add_argument("--views", default="1000,10000", help="city sizes, multiples of 1,000")
     ap.add_argument("--size", default="320x180", help="image size WxH")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--batch-size", type=int, default=4)
+    ap.add_argument(
+        "--batch-size", type=int, default=RunParams().batch_size, help="views per task [config's]"
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(ROOT / "out" / "city-scale"), help="work folder")
     ap.add_argument("--generate-only", action="store_true", help="make the cities, run nothing")

@@ -50,6 +50,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from streetcd.config import RunParams
+
 
 def make_city(root: Path, views: int, size: tuple[int, int], seed: int) -> dict[str, str]:
     """The synthetic city (reused when ``root`` already has it) and its tile store."""
@@ -198,7 +200,9 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=200, help="views in the synthetic city")
     ap.add_argument("--workers", default="1,2", help="worker counts to compare, in order")
     ap.add_argument("--size", default="960x540", help="image size WxH")
-    ap.add_argument("--batch-size", type=int, default=4)
+    ap.add_argument(
+        "--batch-size", type=int, default=RunParams().batch_size, help="views per task [config's]"
+    )
     ap.add_argument(
         "--repeat",
         type=int,

@@ -451,9 +451,10 @@ def test_a_region_chained_to_a_change_whose_line_of_sight_disagrees_is_split_off
 
 
 def test_the_road_test_answers_what_a_scan_of_the_whole_tiles_answers(tmp_path, monkeypatch):
-    """ground_classes reads each tile once (x, y and classes only) and looks at a thin slice
-    of it: its answers are those of the old scan of every point of the tiles, at points
-    near tile edges and corners too, with the LRU evicting tiles between calls."""
+    """ground_classes reads each tile once (its stored x, y and classes only) and tests the
+    points of a small square of it: its answers are those of the old scan of every point
+    of the tiles, at points near tile edges and corners too, with the LRU evicting tiles
+    between calls."""
     from streetcd.io.las import write_las
     from streetcd.store import objects
     from streetcd.store.ingest import ingest

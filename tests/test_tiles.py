@@ -200,6 +200,28 @@ def test_a_store_keeps_few_sources_open_and_reads_the_same(archive, tmp_path, mo
     assert len(roomy._arrays) == len(roomy.sources)
 
 
+def test_stored_xy_are_the_tile_readers_x_y_and_classes_to_the_bit(archive, tmp_path, monkeypatch):
+    """read_stored_xy (the road test's read) gives each tile's stored integers, from which
+    x · scale + offset is read_tile's local x and y exactly (the same float operations),
+    with the same classes in the same order; runs straddle 500-row chunks; it opens only
+    the two fields it reads."""
+    d, _ = archive
+    monkeypatch.setattr(store_ingest, "CHUNK_POINTS", 500)
+    ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000, workers=1)
+    store = TileStore.open(tmp_path / "s.zarr")
+    chunks: dict = {}
+    for tid in sorted(store.tiles):
+        got = store.read_stored_xy(tid, chunks)
+        want = store.read_tile(tid, cache=False)
+        assert got.x.dtype == got.y.dtype == np.int32
+        np.testing.assert_array_equal(got.x * got.scale_m + got.offset[0], want.xyz[:, 0])
+        np.testing.assert_array_equal(got.y * got.scale_m + got.offset[1], want.xyz[:, 1])
+        np.testing.assert_array_equal(got.classification, want.classification)
+    fresh = TileStore.open(tmp_path / "s.zarr")
+    fresh.read_stored_xy(sorted(fresh.tiles)[0], {})
+    assert {frozenset(a) for a in fresh._arrays.values()} == {frozenset({"xyz", "classification"})}
+
+
 def test_a_corrupt_chunk_in_the_store_names_the_file_and_field(archive, tmp_path):
     d, _ = archive
     ingest(d, tmp_path / "s.zarr", tile_size_m=TILE, chunk_points=1000)

@@ -223,7 +223,7 @@ def _default(path: str | None, out: str, name: str) -> str:
 @click.option(
     "--batch-size",
     type=click.IntRange(min=1),
-    help="Views per Dask task (overrides the config's run.batch_size, default 4).",
+    help="Views per Dask task (overrides the config's run.batch_size, default 8).",
 )
 @click.option("--retry-failed", is_flag=True, help="Process again views that failed before.")
 @click.option(

@@ -37,7 +37,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -53,6 +53,9 @@ from streetcd.store.object_list import check_fraction as check_fraction
 from streetcd.store.object_list import list_objects as list_objects
 from streetcd.store.object_list import normalise_status
 from streetcd.store.records import camera_from_json
+
+if TYPE_CHECKING:
+    from streetcd.store.tiles import StoredXY
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +146,7 @@ def influence_m(max_range_m: float) -> float:
     return max(SEE_RANGE_M, 2 * max_range_m + HALO_M)
 
 
-GROUND_CACHE_BYTES = 192 * 2**20  # the road test's tiles (19 bytes a point)...
+GROUND_CACHE_BYTES = 192 * 2**20  # the road test's tiles (9 bytes a point)...
 GROUND_CHUNK_BYTES = 128 * 2**20  # ...and the store's chunks it decompressed (13 bytes a point)
 
 
@@ -157,10 +160,12 @@ def ground_classes(
     opened is logged once and answers None (the road test is then skipped, nothing fails).
 
     Reading and scanning whole tiles on every call was most of a 10,000-view night's last
-    two minutes. Here a tile is read once, its x, y and classes only (not through the
-    process's tile cache), its decompressed chunks kept for the next tiles that share them
-    (:data:`GROUND_CHUNK_BYTES`), and kept sorted by x (:class:`_GroundTile`, an LRU of
-    :data:`GROUND_CACHE_BYTES`): a call tests the points of a thin x-slice of it."""
+    two minutes. Here a tile is read once, its stored integer x, y and classes only (not
+    through the process's tile cache, no float coordinates of the whole tile), its
+    decompressed chunks kept for the next tiles that share them
+    (:data:`GROUND_CHUNK_BYTES`), and kept (:class:`_GroundTile`, an LRU of
+    :data:`GROUND_CACHE_BYTES`): a call compares the tile's integers with a small square
+    and tests the few points inside exactly (docs/BENCHMARKS.md, 2026-11-28)."""
     roles = np.asarray((class_map or ClassMap()).table(), np.uint8)
     from streetcd.store.tiles import TileStore
 
@@ -173,8 +178,7 @@ def ground_classes(
         if hit is not None:
             cache.move_to_end(tid)
             return hit
-        cloud = tiles.read_tiles([tid], cache=False, fields=(), chunks=chunks)[tid]
-        cache[tid] = new = _GroundTile.of(cloud, roles)
+        cache[tid] = new = _GroundTile.of(tiles.read_stored_xy(tid, chunks), roles, tiles.origin)
         _trim(chunks, GROUND_CHUNK_BYTES, lambda a: a.nbytes)
         _trim(cache, GROUND_CACHE_BYTES, lambda t: t.nbytes)
         return new
@@ -207,55 +211,52 @@ def _trim(cache: dict, max_bytes: int, size: Callable[[Any], int]) -> None:
 
 @dataclass(frozen=True)
 class _GroundTile:
-    """One tile's points for the road test, in the order of ``key`` (M,) uint16, their
-    local x quantised (sorted by a radix sort, several times faster than sorting the
-    floats): ``x``, ``y`` (M,) float64 metres local to ``origin``, as the tile reader gives
-    them; ``role`` (M,) uint8 streetcd codes; ``x0`` and ``per_m`` map x to ``key``."""
+    """One tile's points for the road test: ``x``, ``y`` (M,) int32 as the store holds
+    them (:class:`StoredXY`), ``role`` (M,) uint8 streetcd codes; ``scale_m``, ``offset``
+    (2,) and ``origin`` (2,) make a stored x a CRS x."""
 
-    key: np.ndarray
     x: np.ndarray
     y: np.ndarray
     role: np.ndarray
+    scale_m: float
+    offset: np.ndarray
     origin: np.ndarray
-    x0: float
-    per_m: float
 
     @staticmethod
-    def of(cloud: Any, roles: np.ndarray) -> _GroundTile:
-        x = cloud.xyz[:, 0]
-        x0 = float(x.min()) if len(x) else 0.0
-        per_m = 65535.0 / max(float(x.max()) - x0, 1e-6) if len(x) else 1.0
-        key = np.floor((x - x0) * per_m).clip(0, 65535).astype(np.uint16)
-        order = np.argsort(key, kind="stable")
+    def of(points: StoredXY, roles: np.ndarray, origin: np.ndarray) -> _GroundTile:
         return _GroundTile(
-            key[order],
-            x[order],
-            cloud.xyz[order, 1],
-            roles[cloud.classification[order]],
-            np.asarray(cloud.origin[:2], np.float64),
-            x0,
-            per_m,
+            points.x,
+            points.y,
+            roles[points.classification],
+            points.scale_m,
+            np.asarray(points.offset, np.float64),
+            np.asarray(origin[:2], np.float64),
         )
 
     @property
     def nbytes(self) -> int:
-        return int(self.key.nbytes + self.x.nbytes + self.y.nbytes + self.role.nbytes)
+        return int(self.x.nbytes + self.y.nbytes + self.role.nbytes)
 
     def near(self, x: float, y: float, radius_m: float) -> np.ndarray:
         """The roles of the points within ``radius_m`` of CRS (x, y): the points of the
-        x-slice (a millimetre wider, for rounding), then the exact test of the whole-tile
-        scan it replaces, the same float operations in the same order."""
-        lx = x - self.origin[0]
-        lo = math.floor((lx - radius_m - 1e-3 - self.x0) * self.per_m)
-        hi = math.floor((lx + radius_m + 1e-3 - self.x0) * self.per_m)
-        if hi < 0 or lo > 65535:
-            return np.zeros(0, np.uint8)
-        a = int(np.searchsorted(self.key, max(lo, 0), side="left"))
-        b = int(np.searchsorted(self.key, min(hi, 65535), side="right"))
-        gx = self.x[a:b] + self.origin[0]
-        gy = self.y[a:b] + self.origin[1]
+        square around it in stored integers (a unit wider each way, for rounding: a
+        comparison of the tile's integers, no float coordinates of the whole tile), then
+        the exact test of the whole-tile scan it replaces, on coordinates made by the same
+        float operations as the tile reader's (stored · scale + corner offset, + origin)."""
+        reach = radius_m / self.scale_m + 1.0
+        ux = (x - self.origin[0] - self.offset[0]) / self.scale_m
+        uy = (y - self.origin[1] - self.offset[1]) / self.scale_m
+        box = (
+            (self.x >= math.floor(ux - reach))
+            & (self.x <= math.ceil(ux + reach))
+            & (self.y >= math.floor(uy - reach))
+            & (self.y <= math.ceil(uy + reach))
+        )
+        at = np.flatnonzero(box)
+        gx = (self.x[at] * self.scale_m + self.offset[0]) + self.origin[0]
+        gy = (self.y[at] * self.scale_m + self.offset[1]) + self.origin[1]
         near = (gx - x) ** 2 + (gy - y) ** 2 <= radius_m**2
-        return self.role[a:b][near]
+        return self.role[at][near]
 
 
 def _rebuild_segment(

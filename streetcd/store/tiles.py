@@ -109,6 +109,24 @@ SOURCES_OPEN = 64  # sources whose zarr arrays a TileStore keeps open (least rec
 
 
 @dataclass(frozen=True)
+class StoredXY:
+    """A tile's points as the store holds them, x, y and classes only
+    (:meth:`TileStore.read_stored_xy`).
+
+    x, y : (N,) int32, units of ``scale_m`` from the tile's corner. classification : (N,)
+    uint8, the store's codes. offset : (2,) float64 metres, the corner less the store's
+    origin: a point's local x is ``x · scale_m + offset[0]``, the float operations by which
+    :meth:`TileStore.read_tile` makes it, so the two agree to the bit.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    classification: np.ndarray
+    scale_m: float
+    offset: np.ndarray
+
+
+@dataclass(frozen=True)
 class Fragment:
     """One source file's points in one tile."""
 
@@ -660,27 +678,72 @@ class TileStore:
             out[tid] = cloud
         return {tid: out[tid] for tid in tids}
 
-    def _source_arrays(self, source: int) -> dict[str, Any]:
-        """{field: zarr array} of a source, each checked against the manifest its file
-        record holds (dtype, shape, chunk rows); CorruptFileError names the array's file."""
+    def read_stored_xy(self, tid: str, chunks: dict[tuple[int, str, int], np.ndarray]) -> StoredXY:
+        """Tile ``tid``'s x, y and classes as the store holds them (:class:`StoredXY`), for
+        a lookup that needs no z and no float coordinates of the whole tile (the change
+        objects' road test): read_tiles' float conversion of every point was most of that
+        test's time. ``chunks`` as :meth:`read_tiles`'; the same checks (a short tile is a
+        CorruptFileError)."""
+        row = self._row(tid)
+        if row is None:
+            raise MissingInputError(f"{self.path}: no tile {tid!r}")
+        info = self.tiles.at(row)
+        runs = self._segments[self._first[row] : self._last[row], 2:5].tolist()
+        self._chunks_for(tid, runs, chunks, {"xyz", "classification"})
+        xs, ys, cls = [np.empty(0, np.int32)], [np.empty(0, np.int32)], [np.empty(0, np.uint8)]
+        for source, start, count in runs:
+            arrays = self._source_arrays(source, {"xyz", "classification"})
+            xyz = _rows_of(chunks, source, "xyz", arrays["xyz"], start, count)
+            xs.append(xyz[:, 0])
+            ys.append(xyz[:, 1])
+            cls.append(
+                _rows_of(chunks, source, "classification", arrays["classification"], start, count)
+            )
+        x = np.concatenate(xs)  # copies: the chunks are not kept with the tile
+        if len(x) != info.count:
+            raise CorruptFileError(
+                f"{self.path}: tile {tid}: read {len(x)} points, its index says "
+                f"{info.count}; check the store: streetcd verify {self.path}"
+            )
+        return StoredXY(
+            x=x,
+            y=np.concatenate(ys),
+            classification=np.concatenate(cls),
+            scale_m=self.scale_m,
+            offset=self._corner_offset(info)[:2],
+        )
+
+    def _corner_offset(self, info: TileInfo) -> np.ndarray:
+        """(3,) float64 metres: tile ``info``'s corner less the store origin, what a stored
+        coordinate × ``scale_m`` is added to for the local one."""
+        corner = np.array([info.i * self.tile_size_m, info.j * self.tile_size_m, 0.0])
+        return corner - self.origin
+
+    def _source_arrays(self, source: int, fields: set[str] | None = None) -> dict[str, Any]:
+        """{field: zarr array} of a source, the ``fields`` of its manifest (all when None),
+        each checked against the manifest its file record holds (dtype, shape, chunk rows);
+        CorruptFileError names the array's file. A field is opened when first asked for:
+        opening one is a hop through zarr's event loop (~0.5 ms), and the road test wants
+        two of a source's five."""
+        path, key = self.sources[source]
+        manifest = self._manifest(path)
+        names = [n for n in manifest if fields is None or n in fields]
         with self._arrays_lock:
             arrays = self._arrays.get(source)
-            if arrays is not None:
+            if arrays is None:
+                arrays = self._arrays[source] = {}
+                # A city's store has thousands of sources; kept all night, their zarr
+                # objects (tens each) were most of what the flow process's cycle collector
+                # walked (docs/BENCHMARKS.md). A crop or a road test touches a handful.
+                while len(self._arrays) > SOURCES_OPEN:
+                    self._arrays.popitem(last=False)
+            else:
                 self._arrays.move_to_end(source)
-                return arrays
-        path, key = self.sources[source]
+            missing = [n for n in names if n not in arrays]
         folder = self.path / "points" / key
-        arrays = {}
-        for name, want in self._manifest(path).items():
-            arrays[name] = open_field(folder / name, want, path)
-        with self._arrays_lock:
-            self._arrays[source] = arrays
-            # A city's store has thousands of sources; kept all night, their zarr objects
-            # (tens each) were most of what the flow process's cycle collector walked
-            # (docs/BENCHMARKS.md). A crop or a road test touches a handful at a time.
-            while len(self._arrays) > SOURCES_OPEN:
-                self._arrays.popitem(last=False)
-        return arrays
+        for name in missing:  # outside the lock; two threads may both open one: harmless
+            arrays[name] = open_field(folder / name, manifest[name], path)
+        return {n: arrays[n] for n in names}
 
     def _manifest(self, path: str) -> dict[str, dict[str, Any]]:
         """The ``arrays`` manifest of source ``path``: field → {dtype, shape, chunk_rows}."""
@@ -708,10 +771,7 @@ class TileStore:
         and the command that rewrites that source's points."""
         for source, start, count in runs:
             try:
-                arrays = self._source_arrays(source)
-                for name, a in arrays.items():
-                    if fields is not None and name not in fields:
-                        continue
+                for name, a in self._source_arrays(source, fields).items():
                     folder = self.path / "points" / self.sources[source][1] / name
                     for c in _chunk_numbers(start, count, a.chunks[0]):
                         if (source, name, c) not in out:
@@ -735,25 +795,12 @@ class TileStore:
         parts = []
         for source, start, count in runs.tolist():
             fields = {}
-            for name, a in self._source_arrays(source).items():
-                if want is not None and name not in want:
-                    continue
-                rows = a.chunks[0]
-                pieces = [
-                    chunks[source, name, c][max(start - c * rows, 0) : start + count - c * rows]
-                    for c in _chunk_numbers(start, count, rows)
-                ]
-                if len(pieces) == 1:  # a view: the concatenation below copies it once
-                    fields[name] = pieces[0]
-                else:
-                    fields[name] = (
-                        np.concatenate(pieces) if pieces else np.empty((0, *a.shape[1:]), a.dtype)
-                    )
+            for name, a in self._source_arrays(source, want).items():
+                fields[name] = _rows_of(chunks, source, name, a, start, count)
             parts.append(fields)
         names = set.intersection(*(set(p) for p in parts))  # fields every source has
         cat = {n: np.concatenate([p[n] for p in parts]) for n in names}
-        corner = np.array([info.i * self.tile_size_m, info.j * self.tile_size_m, 0.0])
-        xyz = cat["xyz"] * self.scale_m + (corner - self.origin)  # float64, local
+        xyz = cat["xyz"] * self.scale_m + self._corner_offset(info)  # float64, local
         return PointCloud(
             xyz=xyz,
             origin=self.origin,
@@ -778,6 +825,26 @@ class TileStore:
             "tiles": [t.to_json() for t in self.tiles.values()],
             "files": self.files,
         }
+
+
+def _rows_of(
+    chunks: dict[tuple[int, str, int], np.ndarray],
+    source: int,
+    name: str,
+    array: Any,
+    start: int,
+    count: int,
+) -> np.ndarray:
+    """Rows ``start … start + count − 1`` of field ``name`` of ``source``, cut out of its
+    decompressed ``chunks`` (a view when they lie in one chunk)."""
+    rows = array.chunks[0]
+    pieces = [
+        chunks[source, name, c][max(start - c * rows, 0) : start + count - c * rows]
+        for c in _chunk_numbers(start, count, rows)
+    ]
+    if len(pieces) == 1:
+        return pieces[0]
+    return np.concatenate(pieces) if pieces else np.empty((0, *array.shape[1:]), array.dtype)
 
 
 def _chunk_numbers(start: int, count: int, rows: int) -> range:
