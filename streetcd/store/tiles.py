@@ -644,26 +644,20 @@ class TileStore:
         out: dict[str, PointCloud] = {}
         todo: list[tuple[str, int, TileInfo, tuple]] = []
         for tid in dict.fromkeys(tids):
-            row = self._row(tid)
-            if row is None:
-                raise MissingInputError(f"{self.path}: no tile {tid!r}")
+            row = self._known_row(tid)
             info = self.tiles.at(row)
             key = (str(self.path), tid, tuple((f.key, f.count) for f in info.fragments), which)
             if tc is not None and (hit := tc.get(key)) is not None:
                 out[tid] = hit
             else:
                 todo.append((tid, row, info, key))
-        runs = {t[0]: self._segments[self._first[t[1]] : self._last[t[1]], 2:5] for t in todo}
+        runs = {t[0]: self._runs(t[1]) for t in todo}
         chunks = {} if chunks is None else chunks
         for tid, *_ in todo:
             self._chunks_for(tid, runs[tid].tolist(), chunks, want)
         for tid, _, info, key in todo:
             cloud = self._assemble(info, runs[tid], chunks, want)
-            if len(cloud) != info.count:  # a manifest or index that lies: never a short tile
-                raise CorruptFileError(
-                    f"{self.path}: tile {tid}: read {len(cloud)} points, its index says "
-                    f"{info.count}; check the store: streetcd verify {self.path}"
-                )
+            self._check_count(tid, info, len(cloud))
             if tc is not None:
                 for a in (
                     cloud.xyz,
@@ -684,11 +678,9 @@ class TileStore:
         objects' road test): read_tiles' float conversion of every point was most of that
         test's time. ``chunks`` as :meth:`read_tiles`'; the same checks (a short tile is a
         CorruptFileError)."""
-        row = self._row(tid)
-        if row is None:
-            raise MissingInputError(f"{self.path}: no tile {tid!r}")
+        row = self._known_row(tid)
         info = self.tiles.at(row)
-        runs = self._segments[self._first[row] : self._last[row], 2:5].tolist()
+        runs = self._runs(row).tolist()
         self._chunks_for(tid, runs, chunks, {"xyz", "classification"})
         xs, ys, cls = [np.empty(0, np.int32)], [np.empty(0, np.int32)], [np.empty(0, np.uint8)]
         for source, start, count in runs:
@@ -700,11 +692,7 @@ class TileStore:
                 _rows_of(chunks, source, "classification", arrays["classification"], start, count)
             )
         x = np.concatenate(xs)  # copies: the chunks are not kept with the tile
-        if len(x) != info.count:
-            raise CorruptFileError(
-                f"{self.path}: tile {tid}: read {len(x)} points, its index says "
-                f"{info.count}; check the store: streetcd verify {self.path}"
-            )
+        self._check_count(tid, info, len(x))
         return StoredXY(
             x=x,
             y=np.concatenate(ys),
@@ -712,6 +700,25 @@ class TileStore:
             scale_m=self.scale_m,
             offset=self._corner_offset(info)[:2],
         )
+
+    def _known_row(self, tid: str) -> int:
+        """Tile ``tid``'s row in the index; MissingInputError where the store has none."""
+        row = self._row(tid)
+        if row is None:
+            raise MissingInputError(f"{self.path}: no tile {tid!r}")
+        return row
+
+    def _runs(self, row: int) -> np.ndarray:
+        """(K, 3) int64: (source, start, count) of the tile at index ``row``."""
+        return self._segments[self._first[row] : self._last[row], 2:5]
+
+    def _check_count(self, tid: str, info: TileInfo, n: int) -> None:
+        """A manifest or index that lies: never a short tile."""
+        if n != info.count:
+            raise CorruptFileError(
+                f"{self.path}: tile {tid}: read {n} points, its index says "
+                f"{info.count}; check the store: streetcd verify {self.path}"
+            )
 
     def _corner_offset(self, info: TileInfo) -> np.ndarray:
         """(3,) float64 metres: tile ``info``'s corner less the store origin, what a stored
