@@ -211,31 +211,21 @@ def _trim(cache: dict, max_bytes: int, size: Callable[[Any], int]) -> None:
 
 @dataclass(frozen=True)
 class _GroundTile:
-    """One tile's points for the road test: ``x``, ``y`` (M,) int32 as the store holds
-    them (:class:`StoredXY`), ``role`` (M,) uint8 streetcd codes; ``scale_m``, ``offset``
-    (2,) and ``origin`` (2,) make a stored x a CRS x."""
+    """One tile's points for the road test: ``points`` as the store holds them
+    (:class:`StoredXY`: int32 x, y, the scale and corner offset that make them local),
+    ``role`` (M,) uint8 their streetcd codes, ``origin`` (2,) the store's (local → CRS)."""
 
-    x: np.ndarray
-    y: np.ndarray
+    points: StoredXY
     role: np.ndarray
-    scale_m: float
-    offset: np.ndarray
     origin: np.ndarray
 
     @staticmethod
     def of(points: StoredXY, roles: np.ndarray, origin: np.ndarray) -> _GroundTile:
-        return _GroundTile(
-            points.x,
-            points.y,
-            roles[points.classification],
-            points.scale_m,
-            np.asarray(points.offset, np.float64),
-            np.asarray(origin[:2], np.float64),
-        )
+        return _GroundTile(points, roles[points.classification], np.asarray(origin[:2], np.float64))
 
     @property
     def nbytes(self) -> int:
-        return int(self.x.nbytes + self.y.nbytes + self.role.nbytes)
+        return int(self.points.x.nbytes + self.points.y.nbytes + self.role.nbytes)
 
     def near(self, x: float, y: float, radius_m: float) -> np.ndarray:
         """The roles of the points within ``radius_m`` of CRS (x, y): the points of the
@@ -243,18 +233,19 @@ class _GroundTile:
         comparison of the tile's integers, no float coordinates of the whole tile), then
         the exact test of the whole-tile scan it replaces, on coordinates made by the same
         float operations as the tile reader's (stored · scale + corner offset, + origin)."""
-        reach = radius_m / self.scale_m + 1.0
-        ux = (x - self.origin[0] - self.offset[0]) / self.scale_m
-        uy = (y - self.origin[1] - self.offset[1]) / self.scale_m
+        p, scale, off = self.points, self.points.scale_m, self.points.offset
+        reach = radius_m / scale + 1.0
+        ux = (x - self.origin[0] - off[0]) / scale
+        uy = (y - self.origin[1] - off[1]) / scale
         box = (
-            (self.x >= math.floor(ux - reach))
-            & (self.x <= math.ceil(ux + reach))
-            & (self.y >= math.floor(uy - reach))
-            & (self.y <= math.ceil(uy + reach))
+            (p.x >= math.floor(ux - reach))
+            & (p.x <= math.ceil(ux + reach))
+            & (p.y >= math.floor(uy - reach))
+            & (p.y <= math.ceil(uy + reach))
         )
         at = np.flatnonzero(box)
-        gx = (self.x[at] * self.scale_m + self.offset[0]) + self.origin[0]
-        gy = (self.y[at] * self.scale_m + self.offset[1]) + self.origin[1]
+        gx = (p.x[at] * scale + off[0]) + self.origin[0]
+        gy = (p.y[at] * scale + off[1]) + self.origin[1]
         near = (gx - x) ** 2 + (gy - y) ** 2 <= radius_m**2
         return self.role[at][near]
 
