@@ -26,6 +26,11 @@ the cluster's start, detection, publishing; the Prefect server's start and the p
 imports are outside it, and printed as ``process s``). ``cpu/core`` is the workers' CPU time
 per core-second of wall (Σ per-view CPU / (wall × workers)): far below 100 %, the machine was
 shared and the overhead says more about the neighbours (load averages are printed too).
+A second table gives the CPU seconds of the run's processes by kind (psutil, every 0.5 s):
+the Dask workers, the flow process (planning, the LocalCluster's scheduler and the client,
+Prefect's task engine, publishing, the change objects), Prefect's temporary server, the
+``streetcd run`` command itself, the rest; against the command's time × the cores. On a
+machine with as many cores as workers, the flow and the server run on the workers' cores.
 
 ``streetcd query`` is timed on the run's index, median of 5, as a subprocess (what a user
 waits for, Python's start and imports included) and in-process (``run_query``, the query
@@ -183,7 +188,11 @@ class RssSampler(threading.Thread):
     supervised ``streetcd.cli.run`` child: planning, the client, publishing); keeps each
     one's peak, bytes; every 10 s it writes them to ``dump`` (JSON, for a run cut short).
     Every ``trace_s`` seconds it adds a line to ``trace`` (a text file): the time, the views
-    the index holds (``index``, read-only), each worker's and the flow's RSS now, the load."""
+    the index holds (``index``, read-only), each worker's and the flow's RSS now, the load.
+
+    It also keeps each process's CPU time (user + system) at its last sample, by kind
+    (:func:`process_kind`): where the two cores went. A process's last 0.5 s before it
+    exits are not counted."""
 
     def __init__(
         self,
@@ -201,7 +210,15 @@ class RssSampler(threading.Thread):
         self.now: dict[int, int] = {}
         self.main = 0
         self.main_now = 0
+        self.cpu: dict[int, tuple[str, float]] = {}  # pid → (kind, CPU s at the last sample)
         self.stopped = threading.Event()
+
+    def cpu_by_kind(self) -> dict[str, float]:
+        """CPU seconds of the run's processes, summed by kind."""
+        out: dict[str, float] = {}
+        for kind, cpu in self.cpu.values():
+            out[kind] = out.get(kind, 0.0) + cpu
+        return out
 
     def _trace_line(self) -> None:
         if self.trace is None:
@@ -236,11 +253,13 @@ class RssSampler(threading.Thread):
             try:
                 self.main = max(self.main, root.memory_info().rss)
                 children = root.children(recursive=True)
+                self.cpu[root.pid] = ("command", _cpu_s(root))
             except psutil.Error:
                 return
             for p in children:
                 try:
                     cmd = " ".join(p.cmdline())
+                    self.cpu[p.pid] = (process_kind(cmd), _cpu_s(p))
                     if "spawn_main" in cmd:
                         self.now[p.pid] = p.memory_info().rss
                         self.workers[p.pid] = max(self.workers.get(p.pid, 0), self.now[p.pid])
@@ -249,6 +268,22 @@ class RssSampler(threading.Thread):
                         self.main = max(self.main, self.main_now)
                 except psutil.Error:
                     pass
+
+
+def process_kind(cmdline: str) -> str:
+    """Which part of a night a process of ``streetcd run`` is, from its command line."""
+    if "spawn_main" in cmdline:
+        return "workers" if "resource_tracker" not in cmdline else "other"
+    if "streetcd.cli.run" in cmdline:
+        return "flow"  # planning, the Dask scheduler and client, Prefect's engine, publishing
+    if "prefect.server" in cmdline:
+        return "prefect server"
+    return "other"
+
+
+def _cpu_s(p: Any) -> float:
+    t = p.cpu_times()
+    return float(t.user + t.system)
 
 
 def night(paths: dict[str, str], out: Path, workers: int, batch_size: int) -> dict[str, Any]:
@@ -302,6 +337,7 @@ def night(paths: dict[str, str], out: Path, workers: int, batch_size: int) -> di
         "workers": workers,
         "worker_rss": sorted(sampler.workers.values(), reverse=True),
         "main_rss": sampler.main,
+        "cpu_by_process": sampler.cpu_by_kind(),
         "index": index,
         "index_bytes": sum(
             p.stat().st_size for p in out.glob("change_index.sqlite*") if p.is_file()
@@ -394,6 +430,16 @@ def table(rows: list[dict[str, Any]]) -> str:
             f"{100 * (wall / (s['view_s'] / w) - 1):>6.1f}% "
             f"{100 * s['cpu_s'] / (wall * w):>7.0f}% {rss:>19} {s['main_rss'] * mib:>8.0f} "
             f"{s['index_bytes'] / 1e6:>8.2f} {s['n_failed']:>6}  {s['load']}"
+        )
+    lines.append("")
+    kinds = ("workers", "flow", "prefect server", "command", "other")
+    lines.append(f"{'views':>6} " + " ".join(f"{k + ' CPU s':>18}" for k in kinds) + "  of")
+    for s in rows:
+        cpu = s.get("cpu_by_process") or {}
+        lines.append(
+            f"{s['n_done']:>6} "
+            + " ".join(f"{cpu.get(k, 0.0):>18.1f}" for k in kinds)
+            + f"  {s['process_s'] * (os.cpu_count() or 1):.0f} core-s (the command's time × cores)"
         )
     lines.append("")
     lines.append(

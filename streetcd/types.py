@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -133,6 +134,23 @@ class Pose:
         object.__setattr__(pose, "R", R)
         object.__setattr__(pose, "t", t)
         return pose
+
+    def __reduce__(self) -> tuple[Any, tuple[bytes, bytes]]:
+        """Pickled as the 96 bytes of R and t, in the pickle itself: a night sends each Dask
+        batch with ~60 poses, and as numpy arrays each became an out-of-band frame of its
+        own (77 frames a batch). The cached centre is left to be recomputed."""
+        return _pose_from_bytes, (
+            np.asarray(self.R, dtype=np.float64).tobytes(),
+            np.asarray(self.t, dtype=np.float64).tobytes(),
+        )
+
+
+def _pose_from_bytes(R: bytes, t: bytes) -> Pose:
+    """The :class:`Pose` that :meth:`Pose.__reduce__` pickled (bit for bit)."""
+    return Pose.of_rotation(
+        np.frombuffer(R, dtype=np.float64).reshape(3, 3).copy(),
+        np.frombuffer(t, dtype=np.float64).copy(),
+    )
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,7 @@
 """Camera model: projection round trips and convention converters."""
 
+import pickle
+
 import numpy as np
 import pytest
 
@@ -123,3 +125,17 @@ def test_bad_intrinsics_and_poses_are_rejected_with_the_field():
         Intrinsics(10, 10, 1.0, 1.0, float("nan"), 5.0)
     with pytest.raises(InputError, match="not a rotation"):
         Pose(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
+
+
+def test_a_pose_pickles_bit_for_bit_and_keeps_its_centre():
+    rng = np.random.default_rng(3)
+    R = look_at(np.array([1.0, 2.0, 3.0]), np.array([40.0, -7.0, 1.5])).R
+    pose = Pose(R, rng.normal(size=3) * 1e5)  # georeferenced-size translation
+    back = pickle.loads(pickle.dumps(pose, protocol=5))
+    assert back.R.tobytes() == pose.R.tobytes() and back.t.tobytes() == pose.t.tobytes()
+    assert back.R.shape == (3, 3) and back.t.shape == (3,)
+    assert back.R.flags.writeable and back.t.flags.writeable  # arrays of their own
+    assert back.center.tobytes() == pose.center.tobytes()
+    # a transposed (non-contiguous) R goes as its values, not its memory layout
+    turned = Pose.of_rotation(np.asfortranarray(R), pose.t)
+    assert pickle.loads(pickle.dumps(turned)).R.tobytes() == R.tobytes()

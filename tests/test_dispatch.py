@@ -88,3 +88,20 @@ def test_a_worker_that_joins_takes_from_the_back_of_the_longest_queue():
     assert late is not None and names(late) == ["A4", "A5", "A6", "A7"]
     assert late.crop_views != ()
     assert [names(work.take("w0", {"w0"})) for _ in range(1)] == [["A0", "A1", "A2", "A3"]]
+
+
+def test_a_batch_travels_to_dask_as_one_pickle_not_a_frame_per_pose():
+    """Poses pickle in-band (Pose.__reduce__): a segment's batch with its crop views is one
+    pickle, where numpy's out-of-band buffers made two frames for every pose."""
+    from distributed.protocol import dumps, loads
+    from distributed.protocol.serialize import ToPickle
+
+    batch = segment("s", 25, size=8)[0]
+    frames = dumps({"batch": ToPickle(batch)})
+    assert len(frames) <= 3, len(frames)
+    back = loads(frames)["batch"]
+    assert [t.view.name for t in back.tasks] == names(batch)
+    assert all(
+        a.pose.R.tobytes() == b.pose.R.tobytes() and a.pose.t.tobytes() == b.pose.t.tobytes()
+        for a, b in zip(back.crop_views, batch.crop_views, strict=True)
+    )
