@@ -258,12 +258,12 @@ class RssSampler(threading.Thread):
                 return
             for p in children:
                 try:
-                    cmd = " ".join(p.cmdline())
-                    self.cpu[p.pid] = (process_kind(cmd), _cpu_s(p))
-                    if "spawn_main" in cmd:
+                    kind = process_kind(" ".join(p.cmdline()))
+                    self.cpu[p.pid] = (kind, _cpu_s(p))
+                    if kind == "workers":
                         self.now[p.pid] = p.memory_info().rss
                         self.workers[p.pid] = max(self.workers.get(p.pid, 0), self.now[p.pid])
-                    elif "streetcd.cli.run" in cmd:
+                    elif kind == "flow":
                         self.main_now = p.memory_info().rss
                         self.main = max(self.main, self.main_now)
                 except psutil.Error:
@@ -272,8 +272,8 @@ class RssSampler(threading.Thread):
 
 def process_kind(cmdline: str) -> str:
     """Which part of a night a process of ``streetcd run`` is, from its command line."""
-    if "spawn_main" in cmdline:
-        return "workers" if "resource_tracker" not in cmdline else "other"
+    if "spawn_main" in cmdline:  # multiprocessing's spawned children: the Dask workers
+        return "workers"
     if "streetcd.cli.run" in cmdline:
         return "flow"  # planning, the Dask scheduler and client, Prefect's engine, publishing
     if "prefect.server" in cmdline:

@@ -4,6 +4,8 @@ hand-made batches; the Dispatcher on a real cluster is tested in test_pipeline."
 from __future__ import annotations
 
 import numpy as np
+from distributed.protocol import dumps, loads
+from distributed.protocol.serialize import ToPickle
 
 from streetcd.config import Config
 from streetcd.run.dispatch import WorkQueues, split_tail
@@ -93,9 +95,6 @@ def test_a_worker_that_joins_takes_from_the_back_of_the_longest_queue():
 def test_a_batch_travels_to_dask_as_one_pickle_not_a_frame_per_pose():
     """Poses pickle in-band (Pose.__reduce__): a segment's batch with its crop views is one
     pickle, where numpy's out-of-band buffers made two frames for every pose."""
-    from distributed.protocol import dumps, loads
-    from distributed.protocol.serialize import ToPickle
-
     batch = segment("s", 25, size=8)[0]
     frames = dumps({"batch": ToPickle(batch)})
     assert len(frames) <= 3, len(frames)
