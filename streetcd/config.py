@@ -61,6 +61,11 @@ class ZBufferParams:
     # near surfaces still hide what lies behind them; 0 = point_spacing_m alone. 4: a dense
     # MLS cloud (≤ 0.03 m) stays at 0.12 m, a sparse one widens (docs/DECISIONS.md)
     spacing_factor: float = 4.0
+    # our addition (issue 16): false drops eq. 2's colour term for a supporter that only the
+    # cloud's own sparser spacing reaches (farther than max(w1 / 2, f · point_spacing_m / z)):
+    # on a sparse near object the image's colours 50 px apart are not alike, and the wall
+    # behind it stayed visible (true: the colour term everywhere)
+    reach_colour: bool = True
 
     def __post_init__(self) -> None:
         _check(self.block_window_px >= 1, "block_window_px", self.block_window_px, ">= 1")
@@ -375,6 +380,10 @@ class TextureParams:
 
 
 INFER_MODES = ("auto", "always", "off")  # ClassMap.infer
+# The version of the roles inferred from the geometry (streetcd.detect.infer_roles and when
+# streetcd.detect.roles infers), in the results hash unless infer is off: 2 (2026-11-29)
+# reads small parts off the ground as foliage and infers for mostly unclassified clouds.
+INFER_RULES = 2
 
 
 @dataclass(frozen=True)
@@ -565,6 +574,8 @@ class Config:
             del detect["texture"]["max_global_shift_px"]  # off: older hashes hold
         if self.detect.classes.infer == "off":
             del detect["classes"]["infer"]  # the roles as before it existed: older hashes hold
+        else:  # the inference's rules changed the roles of such clouds (2026-11-29): redo them
+            detect["classes"]["infer_rules"] = INFER_RULES
         for key, off in (
             ("spacing_edge_min_depth_m", 0.0),
             ("spacing_edge_min_spacing_m", 0.0),
@@ -573,6 +584,8 @@ class Config:
         ):
             if detect["surface"][key] == off:  # no limit on the widening: older hashes hold
                 del detect["surface"][key]
+        if self.detect.zbuffer.reach_colour:  # eq. 2's colour term everywhere: older hashes hold
+            del detect["zbuffer"]["reach_colour"]
         if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold
             for key in [k for k in detect["correlate"] if k.startswith("nearer")]:
                 del detect["correlate"][key]

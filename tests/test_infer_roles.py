@@ -167,10 +167,41 @@ def test_always_fills_in_only_the_unclassified_points(scene):
     # the car alone has a role (3 % of the points), as the real case's inserted objects
     car = want == classes.CAR
     mixed = np.where(car, classes.POLE, 1).astype(np.uint8)
-    assert not infers(mixed, ClassMap())  # auto leaves a cloud with useful classes alone
     got = cloud_roles(xyz, mixed, ClassMap(infer="always"))
     assert np.all(got[car] == classes.POLE)
     assert np.array_equal(got[~car], infer_roles(xyz)[~car])
+
+
+def test_auto_infers_for_a_mostly_unclassified_cloud_and_leaves_a_mostly_classified_one(scene):
+    xyz, want = scene
+    car = want == classes.CAR
+    # 97 % class 1 around a few classified objects (the real case: 68 % class 1 around the
+    # inserted ones): read like an unclassified cloud, the objects keep their class
+    mostly_plain = np.where(car, classes.POLE, 1).astype(np.uint8)
+    assert infers(mostly_plain, ClassMap())
+    got = cloud_roles(xyz, mostly_plain, ClassMap())
+    assert np.all(got[car] == classes.POLE)
+    assert np.array_equal(got[~car], infer_roles(xyz)[~car])
+    # a classified cloud with some class 1 left (a third here: under half) is left as it is
+    some_plain = want.copy()
+    some_plain[::3] = 1
+    assert not infers(some_plain, ClassMap())
+    assert np.sum(cloud_roles(xyz, some_plain, ClassMap()) == classes.UNCLASSIFIED) == len(
+        want[::3]
+    )
+
+
+def test_a_small_part_that_does_not_stand_on_the_ground_is_foliage_not_a_pole(scene):
+    xyz, want = scene
+    # a piece of a crown the LiDAR reached apart from its tree, 4.7-5.3 m up, and a pole
+    # of the same footprint standing on the ground
+    piece = ball(36.0, -3.0, 5.0 + 0.02 * 36.0, 0.3)
+    pole = box(38, 38.2, -3, -2.8, 0.0, 5.4) + [0.0, 0.0, 0.02 * 38.0]
+    got = infer_roles(np.concatenate([xyz, piece, pole]))
+    n = len(xyz)
+    assert np.all(got[n : n + len(piece)] == classes.VEGETATION)
+    high = pole[:, 2] - 0.02 * 38.0 > 0.35  # above the ground's tolerance
+    assert np.all(got[n + len(piece) :][high] == classes.POLE)
 
 
 def test_the_surface_cache_keys_on_the_inference_switch(scene):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -229,6 +231,38 @@ def test_adaptive_window_removes_the_wall_seen_through_a_near_pole():
     assert seen_wall[adaptive].sum() == seen_wall[b5].sum()
 
 
+def test_without_reach_colour_a_textured_near_pole_still_hides_the_wall_behind_it():
+    # The same pole painted in stripes 0.1 m wide (40 px): its points 24 px apart lie on
+    # pixels of other colours, so eq. 2's colour term lets most of them support nothing
+    # beyond w1 and the wall shows through; counted within w1 only, it hides the wall again.
+    points, image, is_pole, occluded = _near_pole_scene(np.random.default_rng(3))
+    col = np.arange(W)
+    stripe = ((col - INTR.cx) // (0.1 * F)).astype(int) % 2 == 1
+    on_pole = np.all(np.abs(image.astype(int) - FRONT_RGB) <= 1, axis=2)
+    image = image.copy()
+    image[on_pole & stripe[None, :]] = [40, 160, 60]
+    b5 = block_zbuffer(points.uv, points.depth, (H, W), 5)
+    # the pole's 0.06 m is the cloud's own measured spacing, sparser than point_spacing_m
+    own = np.full(len(points.depth), 0.06)
+    colour = ZBufferParams(point_spacing_m=0.01)
+    kept = weighted_zbuffer(points.uv, points.depth, image, colour, focal_px=F, spacing_m=own)
+    assert occluded[kept].sum() > 0.4 * occluded[b5].sum()  # 514 of 1,102
+    near = dataclasses.replace(colour, reach_colour=False)
+    kept = weighted_zbuffer(points.uv, points.depth, image, near, focal_px=F, spacing_m=own)
+    # 41 stay: beside a stripe's edge, the one pole column within reach on that side is
+    # within w1 and of the other colour, so eq. 2 still turns it away
+    assert occluded[kept].sum() < 0.05 * occluded[b5].sum()
+    assert is_pole[kept].sum() == 66  # the pole keeps its points
+    col_px, row_px = np.floor(points.uv + 0.5).astype(int).T
+    shows_wall = np.abs(image[row_px, col_px].astype(int) - BACK_RGB).max(axis=1) <= 1
+    seen_wall = ~is_pole & ~occluded & shows_wall
+    assert seen_wall[kept].sum() == seen_wall[b5].sum()  # the wall beside it all stays
+    # where point_spacing_m alone reaches as far (a dense cloud), the colour term stays
+    dense = ZBufferParams(point_spacing_m=0.06, reach_colour=False)
+    kept_dense = weighted_zbuffer(points.uv, points.depth, image, dense, focal_px=F)
+    assert occluded[kept_dense].sum() > 0.4 * occluded[b5].sum()
+
+
 def test_adaptive_window_keeps_a_near_wall_seen_at_an_angle():
     # A plain wall 0.7–2 m away at 45°, points 0.06 m apart (11–35 px): the adaptive window
     # is wide here, the image uniform (every neighbour supports), and depth grows across it;
@@ -322,7 +356,7 @@ def test_project_cloud_drops_points_folded_into_the_image_by_distortion():
     np.testing.assert_array_equal(pts.index, [0])
 
 
-def _brute_weighted(uv, depth, image, params, focal_px):
+def _brute_weighted(uv, depth, image, params, focal_px, spacing_m=None):
     """Eq. 2–3 with the metric surround test and the adaptive window, point by point over
     every other BWZB point (no search radius, no cell order): what the kernel must keep."""
     kept = _brute_block(uv, depth, image.shape[:2], params.block_window_px)
@@ -330,7 +364,12 @@ def _brute_weighted(uv, depth, image, params, focal_px):
     tan_t = np.tan(np.radians(params.max_angle_deg))
     pix = np.floor(uv[kept] + 0.5).astype(int)
     rgb = image[pix[:, 1], pix[:, 0]].astype(float)
-    reach = np.maximum(half, focal_px * params.point_spacing_m / depth[kept])
+    s = (
+        params.point_spacing_m
+        if spacing_m is None
+        else np.maximum(params.point_spacing_m, spacing_m[kept])
+    )
+    reach = np.maximum(half, focal_px * s / depth[kept])
     out = []
     for j, c in enumerate(kept):
         dz = depth[c] - depth[kept]
@@ -339,11 +378,15 @@ def _brute_weighted(uv, depth, image, params, focal_px):
         drgb = rgb - rgb[j]
         dc = np.sqrt((drgb * drgb).sum(axis=1))
         shrink = np.where(reach <= half, 1.0, half / reach)
+        # without reach_colour, eq. 2's colour term only within the reach point_spacing_m gives
+        base = np.maximum(half, focal_px * params.point_spacing_m / depth[kept])
+        within = (np.abs(du) <= base) & (np.abs(dv) <= base)
+        colour = np.where(within | params.reach_colour, dc / params.delta_color, 0.0)
         support = (
             (dz > 0)
             & (np.abs(du) <= reach)
             & (np.abs(dv) <= reach)
-            & (dd * shrink / params.gamma_px + dc / params.delta_color < -np.log(params.tau))
+            & (dd * shrink / params.gamma_px + colour < -np.log(params.tau))
         )
         if np.any(support & (dz > tan_t * dd)):
             continue
@@ -356,8 +399,11 @@ def _brute_weighted(uv, depth, image, params, focal_px):
     return np.array(out, dtype=np.int64)
 
 
-@pytest.mark.parametrize("spacing", [0.0, 0.12])
-def test_weighted_zbuffer_equals_brute_force_with_the_adaptive_window(spacing):
+@pytest.mark.parametrize(
+    ("spacing", "own", "reach_colour"),
+    [(0.0, False, True), (0.12, False, True), (0.12, True, True), (0.12, True, False)],
+)
+def test_weighted_zbuffer_equals_brute_force_with_the_adaptive_window(spacing, own, reach_colour):
     # guards the packed, occupied-cells-only scan of _weighted_erase: scattered points at
     # random depths (near ones reach far) on a blocky image, against eq. 2–3 point by point
     rng = np.random.default_rng(11)
@@ -367,9 +413,11 @@ def test_weighted_zbuffer_equals_brute_force_with_the_adaptive_window(spacing):
     blocks = rng.integers(0, 4, (8, 12)) * 60
     image = np.repeat(np.repeat(blocks, 10, axis=0), 10, axis=1)[..., None].repeat(3, axis=2)
     image = np.ascontiguousarray(image.astype(np.uint8))
-    params = ZBufferParams(point_spacing_m=spacing)
-    got = weighted_zbuffer(uv, depth, image, params, focal_px=100.0)
-    want = _brute_weighted(uv, depth, image, params, 100.0)
+    params = ZBufferParams(point_spacing_m=spacing, reach_colour=reach_colour)
+    # own: the cloud's measured spacing per point, sparser than point_spacing_m for some
+    spacing_m = rng.choice([0.0, 0.3], n) if own else None
+    got = weighted_zbuffer(uv, depth, image, params, focal_px=100.0, spacing_m=spacing_m)
+    want = _brute_weighted(uv, depth, image, params, 100.0, spacing_m)
     assert 0 < len(got) < len(_brute_block(uv, depth, image.shape[:2], 5))  # some erased
     np.testing.assert_array_equal(got, want)
 

@@ -39,6 +39,7 @@ LOW_PART_M = 0.5  # parts below this (kerbs, bumps, litter) are ground
 SMALL_LENGTH_M = 3.0  # a pole (a street light's arm included), a sign, a bench or a bin ...
 SMALL_WIDTH_M = 1.0  # ... is at most this long and this wide
 POLE_TOP_M = 2.2  # a small part taller than this is a pole (or a sign on one), else furniture
+FLOATING_BOTTOM_M = 1.0  # ... when it stands on the ground: a small part starting higher is foliage
 RAILING_TOP_M = 1.6  # a long thin part lower than this is a railing ...
 RAILING_WIDTH_M = 0.75  # ... when at most this wide (a hedge is wider)
 BUILDING_TOP_M = 3.0  # a façade is taller than this ...
@@ -167,12 +168,14 @@ def _part_sizes(cells: np.ndarray, part: np.ndarray, n: int, voxel: float) -> di
     width = np.sqrt(12 * np.maximum(mid - half, 0.0)) + voxel
     top = np.zeros(n)
     np.maximum.at(top, part, (cells[:, 2] + 1) * voxel)
+    bottom = np.full(n, np.inf)
+    np.minimum.at(bottom, part, cells[:, 2] * voxel)
     # footprint columns: distinct (part, x, y) of the voxels
     nx, ny = int(cells[:, 0].max()) + 1, int(cells[:, 1].max()) + 1
     columns = np.unique((part * nx + cells[:, 0]) * ny + cells[:, 1])
     per_part = np.bincount(columns // (nx * ny), minlength=n)
     fill = per_part * voxel**2 / (length * width)
-    return {"length": length, "width": width, "top": top, "fill": fill}
+    return {"length": length, "width": width, "top": top, "bottom": bottom, "fill": fill}
 
 
 def _rules(size: dict[str, np.ndarray]) -> np.ndarray:
@@ -191,6 +194,9 @@ def _rules(size: dict[str, np.ndarray]) -> np.ndarray:
     role[thin] = classes.RAILING
     small = (length <= SMALL_LENGTH_M) & (width <= SMALL_WIDTH_M)
     role[small] = np.where(top[small] > POLE_TOP_M, classes.POLE, classes.FURNITURE)
+    # a small part that does not reach down to the ground is no pole, bin or bench: a sparse
+    # LiDAR breaks a tree's crown into such pieces (docs/TUNING.md, sixteenth round)
+    role[small & (size["bottom"] > FLOATING_BOTTOM_M)] = classes.VEGETATION
     role[top < LOW_PART_M] = classes.GROUND
     return role
 

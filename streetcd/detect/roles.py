@@ -35,6 +35,11 @@ _ROLES = ArrayMemo()
 # Below this share of points in a role other than the ground and the road, a cloud's classes
 # tell the detector nothing it uses: the class term and the class weights fall away.
 MIN_USEFUL_SHARE = 0.01
+# Above this share of points in no role, "auto" infers those points' roles although the rest
+# are classified: a cloud mostly unclassified, with a few classified objects in it, is read
+# like an unclassified one (its ground keeps the low weight of eq. 5; docs/TUNING.md,
+# sixteenth round).
+MAX_ROLELESS_SHARE = 0.5
 
 
 @functools.lru_cache(maxsize=8)
@@ -82,7 +87,10 @@ def infers(classification: np.ndarray, class_map: ClassMap) -> bool:
     """Whether :func:`cloud_roles` infers the roles of a cloud of these classes (N,) uint8."""
     if class_map.infer == "off" or len(classification) == 0:
         return False
-    return class_map.infer == "always" or useless_classes(classification, class_map) is not None
+    if class_map.infer == "always" or useless_classes(classification, class_map) is not None:
+        return True
+    roleless = role_codes(classification, class_map) == classes.UNCLASSIFIED
+    return bool(roleless.mean() > MAX_ROLELESS_SHARE)
 
 
 def _timed_inference(xyz: np.ndarray) -> np.ndarray:

@@ -433,6 +433,7 @@ def _weighted_erase(
     surround,
     reach_scale,
     reach_pt,
+    reach_colour,
 ):  # pragma: no cover - compiled
     """Erase flags for the BWZB points ``cells`` (see :func:`weighted_zbuffer`).
 
@@ -442,7 +443,9 @@ def _weighted_erase(
     supporters that surround the centre (no open half-plane through it holds them all).
     A neighbour i counts within ``r_i = max(half, reach_scale / z_i)`` px of the centre
     (``reach_scale = 0``: the fixed ``half``), and its Δd of eq. 2 is taken in units of
-    ``r_i / half``. Only occupied cells are visited (:func:`_packed_cells`).
+    ``r_i / half``; without ``reach_colour``, eq. 2's colour term counts only within
+    ``max(half, reach_scale / z_i)`` px (beyond, only the cloud's own sparser spacing
+    ``reach_pt`` reaches). Only occupied cells are visited (:func:`_packed_cells`).
 
     The pairs are visited from the supporter's side: each point i scans the cells within
     its own reach r_i for the farther centres it supports. From the centres' side every
@@ -481,13 +484,17 @@ def _weighted_erase(
                 dc2 = dr * dr + dg * dg + db * db
                 # most pairs differ in colour by more than eq. 2 allows at any distance:
                 # reject them before the square roots (max_dc2's margin changes no decision)
-                if dc2 > max_dc2:
+                # the reach a dense cloud's spacing gives (point_spacing_m): colour counts there
+                base = half if reach_scale <= 0.0 else max(half, reach_scale / table[i, 0])
+                within = (abs(du) <= base) & (abs(dv) <= base)
+                if dc2 > max_dc2 and (reach_colour or within):
                     continue
                 dd = math.sqrt(du * du + dv * dv)
                 # eq. 2: W = exp(−(Δd/γ + Δc/δ)) > τ  ⇔  Δd/γ + Δc/δ < −ln τ, with Δd in
                 # units of the supporter's reach: as close relative to its spacing
                 shrink = 1.0 if reach <= half else half / reach
-                if dd * shrink / gamma + math.sqrt(dc2) / delta >= max_log_w:
+                colour = math.sqrt(dc2) / delta if (reach_colour or within) else 0.0
+                if dd * shrink / gamma + colour >= max_log_w:
                     continue
                 # eq. 3 as written, offsets in pixels: arctan(dz / dd) > θ  ⇔  dz > tan θ · dd
                 if dz > tan_theta * dd:
@@ -603,5 +610,6 @@ def weighted_zbuffer(
         focal_px is not None,
         reach_scale,
         reach_pt,
+        bool(params.reach_colour),
     )
     return _sorted_indices(np.where(erase, -1, cells), depth.shape[0])
