@@ -353,9 +353,21 @@ class TextureParams:
     # by default, the objects a city's database tracks (on façades and trees the texture of a
     # window does not survive the registration error of synthetic streets: docs/TUNING.md)
     classes: tuple[int, ...] = classes.INVENTORY
+    # our addition (issue 16): a neighbour gives no evidence where it sees the old surface
+    # foreshortened against the view by a factor below this (cos of its viewing angle over
+    # the view's, or the inverse): a window's texture does not match across a plane seen
+    # edge-on from one side. 0.5, set once: a window seen at half its width (0: every
+    # neighbour everywhere; docs/TUNING.md, sixteenth round)
+    min_foreshortening: float = 0.5
 
     def __post_init__(self) -> None:
         _check(self.weight >= 0, "texture.weight", self.weight, ">= 0")
+        _check(
+            0 <= self.min_foreshortening <= 1,
+            "texture.min_foreshortening",
+            self.min_foreshortening,
+            "in [0, 1]",
+        )
         _check(self.window_px >= 3, "texture.window_px", self.window_px, ">= 3")
         _check(self.min_std >= 0, "texture.min_std", self.min_std, ">= 0")
         _check(0 < self.scale <= 1, "texture.scale", self.scale, "in (0, 1]")
@@ -570,8 +582,11 @@ class Config:
         detect = params_to_dict(self.detect)
         if not self.detect.texture.enabled:
             del detect["texture"]  # a cue that is off changes nothing (and older hashes hold)
-        elif not self.detect.texture.max_global_shift_px:
-            del detect["texture"]["max_global_shift_px"]  # off: older hashes hold
+        else:
+            if not self.detect.texture.max_global_shift_px:
+                del detect["texture"]["max_global_shift_px"]  # off: older hashes hold
+            if not self.detect.texture.min_foreshortening:
+                del detect["texture"]["min_foreshortening"]  # off: older hashes hold
         if self.detect.classes.infer == "off":
             del detect["classes"]["infer"]  # the roles as before it existed: older hashes hold
         else:  # the inference's rules changed the roles of such clouds (2026-11-29): redo them

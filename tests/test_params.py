@@ -108,18 +108,22 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
     # so it must come from a change of the results (2026-11-29, sixteenth round: the rules of
-    # the inferred roles, version 2; 7fee81a419188dbe before, from the eighth round: roles
-    # inferred for unclassified clouds, the intensity check, spacing-aware surfaces and
-    # z-buffer, the texture cue's global shift; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "e8878855fdd0ba4c"
+    # the inferred roles, version 2, and the texture cue's foreshortening test;
+    # 7fee81a419188dbe before, from the eighth round: roles inferred for unclassified clouds,
+    # the intensity check, spacing-aware surfaces and z-buffer, the texture cue's global
+    # shift; 55a05b5c9150e8fc before that)
+    assert base.results_hash() == "b391d095e4e6e3b2"
     # a switch added off keeps the hash; on, it changes it
     nearer_on = Config(DetectParams(correlate=CorrelateParams(nearer_weight=1.0)))
-    assert nearer_on.results_hash() == "5b3f69f2c42d8679"
+    assert nearer_on.results_hash() == "e061e34aaf2cae12"
     no_reach_colour = Config(DetectParams(zbuffer=ZBufferParams(reach_colour=False)))
     assert no_reach_colour.results_hash() not in (base.results_hash(), nearer_on.results_hash())
-    # without inference the rules' version is left out: hashes from before it hold
-    no_inference = Config(DetectParams(classes=ClassMap(infer="off")))
-    assert no_inference.results_hash() == "5d2d95da524a50c4"
+    # without inference the rules' version is left out, and without the foreshortening test
+    # its setting: the hash of the settings before both (7fee81a419188dbe with infer off)
+    before = DetectParams(
+        classes=ClassMap(infer="off"), texture=TextureParams(min_foreshortening=0.0)
+    )
+    assert Config(before).results_hash() == "5d2d95da524a50c4"
     texture_off = Config(DetectParams(texture=TextureParams(enabled=False)))
     assert texture_off.results_hash() != base.results_hash()
     city_codes = Config(DetectParams(classes=ClassMap(pole=(15,))))

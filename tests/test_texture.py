@@ -8,12 +8,15 @@ import numpy as np
 import pytest
 
 from streetcd.config import DetectParams, TextureParams
+from streetcd.detect.correlate import camera_rays
 from streetcd.detect.texture import (
     _best_ncc,
     _best_ncc_on,
     _tiles_near,
+    foreshortening,
     global_shift,
     local_ncc,
+    surface_points,
     texture_change,
 )
 from streetcd.types import Intrinsics, Pose
@@ -145,6 +148,44 @@ def test_an_old_object_in_front_of_a_textured_wall_is_found_and_the_wall_is_not(
         where=removed,
     )
     assert not only[~removed].any() and np.allclose(only[inner], change[inner], atol=1e-5)
+
+
+def test_foreshortening_is_the_ratio_of_the_two_cameras_cosines_on_the_surface():
+    depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    depth[:20, :30] = np.nan  # no surface there: no judgement
+    points = surface_points(depth, camera_rays(INTR))
+    # the wall z = 10 faces the view; a camera 3 m aside sees it more obliquely
+    ratio = foreshortening(points, np.array([3.0, 0.0, 0.0]))
+    x, y = points[..., 0], points[..., 1]
+    cos_p = WALL_Z / np.sqrt(x * x + y * y + WALL_Z**2)
+    cos_q = WALL_Z / np.sqrt((x - 3.0) ** 2 + y * y + WALL_Z**2)
+    want = np.minimum(cos_p, cos_q) / np.maximum(cos_p, cos_q)
+    inner = np.zeros(depth.shape, bool)
+    inner[22:-2, 32:-2] = True
+    np.testing.assert_allclose(ratio[inner], want[inner], rtol=1e-4)
+    assert np.all(ratio[:20, :30] == 1.0) and np.all(ratio[:, :2] == 1.0)  # unknown: 1
+    # a camera in the wall's plane sees it edge-on
+    edge_on = foreshortening(points, np.array([30.0, 0.0, WALL_Z]))
+    assert np.all(edge_on[inner] < 0.01)
+
+
+def test_a_neighbour_that_sees_the_surface_much_more_obliquely_gives_no_texture_evidence():
+    texture = _wall_texture()
+    view, other = _render(texture, 0.0), _render(texture, 1.0)
+    pose_p = Pose(np.eye(3), np.zeros(3))
+    pose_q = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    nbs = [(other, depth, INTR, pose_q, None)]
+    base = TextureParams(enabled=True, scale=1.0, window_px=9)
+    _, support = texture_change(view, depth, INTR, pose_p, nbs, base, 0.3)
+    # 1 m aside at 10 m: the wall's foreshortening differs by < 1 % (ratio ≥ 0.99)
+    loose = TextureParams(enabled=True, scale=1.0, window_px=9, min_foreshortening=0.9)
+    _, support_loose = texture_change(view, depth, INTR, pose_p, nbs, loose, 0.3)
+    assert support.sum() > 0.5 * support.size
+    np.testing.assert_array_equal(support_loose, support)
+    strict = TextureParams(enabled=True, scale=1.0, window_px=9, min_foreshortening=0.999)
+    _, support_strict = texture_change(view, depth, INTR, pose_p, nbs, strict, 0.3)
+    assert support_strict.sum() < 0.2 * support.sum()
 
 
 def test_a_texture_cue_that_is_off_changes_no_hash():
