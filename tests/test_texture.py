@@ -116,12 +116,18 @@ def _render(texture: np.ndarray, center_x: float) -> np.ndarray:
     return np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
 
 
-def test_an_old_object_in_front_of_a_textured_wall_is_found_and_the_wall_is_not():
+def _two_cameras_on_the_wall() -> tuple[np.ndarray, np.ndarray, Pose, Pose, np.ndarray]:
+    """The view at the origin and a neighbour 1 m aside, both looking at the textured wall:
+    their images, poses and the wall's depth (H, W) float32."""
     texture = _wall_texture()
     view, other = _render(texture, 0.0), _render(texture, 1.0)
     pose_p = Pose(np.eye(3), np.zeros(3))
     pose_q = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))
-    depth_q = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    return view, other, pose_p, pose_q, np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+
+
+def test_an_old_object_in_front_of_a_textured_wall_is_found_and_the_wall_is_not():
+    view, other, pose_p, pose_q, depth_q = _two_cameras_on_the_wall()
     depth_p = depth_q.copy()
     removed = np.zeros(depth_p.shape, bool)
     removed[40:80, 60:100] = True
@@ -170,11 +176,7 @@ def test_foreshortening_is_the_ratio_of_the_two_cameras_cosines_on_the_surface()
 
 
 def test_a_neighbour_that_sees_the_surface_much_more_obliquely_gives_no_texture_evidence():
-    texture = _wall_texture()
-    view, other = _render(texture, 0.0), _render(texture, 1.0)
-    pose_p = Pose(np.eye(3), np.zeros(3))
-    pose_q = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))
-    depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    view, other, pose_p, pose_q, depth = _two_cameras_on_the_wall()
     nbs = [(other, depth, INTR, pose_q, None)]
     base = TextureParams(enabled=True, scale=1.0, window_px=9)
     _, support = texture_change(view, depth, INTR, pose_p, nbs, base, 0.3)
