@@ -16,6 +16,7 @@ from streetcd.detect.texture import (
     foreshortening,
     global_shift,
     local_ncc,
+    surface_normals,
     surface_points,
     texture_change,
 )
@@ -160,8 +161,9 @@ def test_foreshortening_is_the_ratio_of_the_two_cameras_cosines_on_the_surface()
     depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
     depth[:20, :30] = np.nan  # no surface there: no judgement
     points = surface_points(depth, camera_rays(INTR))
+    normals = surface_normals(points)
     # the wall z = 10 faces the view; a camera 3 m aside sees it more obliquely
-    ratio = foreshortening(points, np.array([3.0, 0.0, 0.0]))
+    ratio = foreshortening(points, normals, np.array([3.0, 0.0, 0.0]))
     x, y = points[..., 0], points[..., 1]
     cos_p = WALL_Z / np.sqrt(x * x + y * y + WALL_Z**2)
     cos_q = WALL_Z / np.sqrt((x - 3.0) ** 2 + y * y + WALL_Z**2)
@@ -171,7 +173,7 @@ def test_foreshortening_is_the_ratio_of_the_two_cameras_cosines_on_the_surface()
     np.testing.assert_allclose(ratio[inner], want[inner], rtol=1e-4)
     assert np.all(ratio[:20, :30] == 1.0) and np.all(ratio[:, :2] == 1.0)  # unknown: 1
     # a camera in the wall's plane sees it edge-on
-    edge_on = foreshortening(points, np.array([30.0, 0.0, WALL_Z]))
+    edge_on = foreshortening(points, normals, np.array([30.0, 0.0, WALL_Z]))
     assert np.all(edge_on[inner] < 0.01)
 
 

@@ -89,8 +89,9 @@ def infers(classification: np.ndarray, class_map: ClassMap) -> bool:
         return False
     if class_map.infer == "always" or useless_classes(classification, class_map) is not None:
         return True
-    roleless = role_codes(classification, class_map) == classes.UNCLASSIFIED
-    return bool(roleless.mean() > MAX_ROLELESS_SHARE)
+    counts = np.bincount(np.asarray(classification, np.uint8), minlength=256)
+    roleless = int(counts[_table(class_map) == classes.UNCLASSIFIED].sum())
+    return roleless > MAX_ROLELESS_SHARE * int(counts.sum())
 
 
 def _timed_inference(xyz: np.ndarray) -> np.ndarray:

@@ -130,13 +130,16 @@ def texture_change(
         support = np.zeros(depth_b.shape, np.uint8)
         tiles = _tiles_near(where, small, box, reach=params.window_px // 2 + radius)
         background = _background(where, small, box, params.window_px) if search > 0 else None
-        points = surface_points(depth_b, rays) if params.min_foreshortening > 0 else None
+        surface = None  # (points, normals) of the view's surface, for the angle test
+        if params.min_foreshortening > 0:
+            points = surface_points(depth_b, rays)
+            surface = (points, surface_normals(points))
         for nb_image, nb_depth, nb_intr, nb_pose, holes in neighbours:
             nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
             warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
-            if points is not None:
+            if surface is not None:
                 centre = pose_p.R @ nb_pose.center + pose_p.t  # the neighbour, in p's camera
-                valid &= foreshortening(points, centre) >= params.min_foreshortening
+                valid &= foreshortening(*surface, centre) >= params.min_foreshortening
             offset = (0, 0)
             if background is not None:
                 offset = global_shift(grey_p, warped, valid & background, search)
@@ -161,32 +164,55 @@ def surface_points(depth: np.ndarray, rays: np.ndarray) -> np.ndarray:
     return np.stack([rays[..., 0] * z, rays[..., 1] * z, z], axis=-1)
 
 
-def foreshortening(points: np.ndarray, centre: np.ndarray, step: int = 2) -> np.ndarray:
-    """(H, W) float32 in [0, 1]: how alike the view (at the origin) and a camera at
-    ``centre`` (3,) metres see the surface ``points`` (H, W, 3) (:func:`surface_points`),
-    ``min(r, 1 / r)`` with ``r = |cos θ_q| / |cos θ_p|``, θ the angle between a camera's ray
-    and the surface normal there. The normal is the cross product of the surface's central
-    differences ``step`` pixels apart; 1 where it cannot be had (no surface, a border) so that
-    only a known bad angle removes evidence."""
-    pts = np.ascontiguousarray(points, np.float32)
-    c = np.asarray(centre, np.float64)
-    return _foreshortening(pts, float(c[0]), float(c[1]), float(c[2]), int(step))
+def surface_normals(points: np.ndarray, step: int = 2) -> np.ndarray:
+    """(H, W, 3) float32 normals (not of unit length) of the surface ``points`` (H, W, 3)
+    (:func:`surface_points`): the cross product of its central differences ``step`` pixels
+    apart; 0 on the border, NaN where a point is missing."""
+    return _normals(np.ascontiguousarray(points, np.float32), int(step))
 
 
 @numba.njit(cache=True, nogil=True)
-def _foreshortening(points, cx, cy, cz, step):  # pragma: no cover - numba
+def _normals(points, step):  # pragma: no cover - numba
     h, w = points.shape[0], points.shape[1]
-    out = np.ones((h, w), np.float32)
+    out = np.zeros((h, w, 3), np.float32)
     for i in range(step, h - step):
         for j in range(step, w - step):
-            x, y, z = points[i, j, 0], points[i, j, 1], points[i, j, 2]
             ux = points[i, j + step, 0] - points[i, j - step, 0]
             uy = points[i, j + step, 1] - points[i, j - step, 1]
             uz = points[i, j + step, 2] - points[i, j - step, 2]
             vx = points[i + step, j, 0] - points[i - step, j, 0]
             vy = points[i + step, j, 1] - points[i - step, j, 1]
             vz = points[i + step, j, 2] - points[i - step, j, 2]
-            nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+            out[i, j, 0] = uy * vz - uz * vy
+            out[i, j, 1] = uz * vx - ux * vz
+            out[i, j, 2] = ux * vy - uy * vx
+    return out
+
+
+def foreshortening(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: how alike the view (at the origin) and a camera at
+    ``centre`` (3,) metres see the surface ``points`` (H, W, 3) with ``normals`` (H, W, 3)
+    (:func:`surface_normals`): ``min(r, 1 / r)`` with ``r = |cos θ_q| / |cos θ_p|``, θ the
+    angle between a camera's ray and the normal. 1 where there is no normal (no surface, the
+    border), so that only a known bad angle removes evidence."""
+    c = np.asarray(centre, np.float64)
+    return _foreshortening(
+        np.ascontiguousarray(points, np.float32),
+        np.ascontiguousarray(normals, np.float32),
+        float(c[0]),
+        float(c[1]),
+        float(c[2]),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _foreshortening(points, normals, cx, cy, cz):  # pragma: no cover - numba
+    h, w = points.shape[0], points.shape[1]
+    out = np.ones((h, w), np.float32)
+    for i in range(h):
+        for j in range(w):
+            x, y, z = points[i, j, 0], points[i, j, 1], points[i, j, 2]
+            nx, ny, nz = normals[i, j, 0], normals[i, j, 1], normals[i, j, 2]
             qx, qy, qz = cx - x, cy - y, cz - z
             dp = math.sqrt(x * x + y * y + z * z)
             dq = math.sqrt(qx * qx + qy * qy + qz * qz)

@@ -463,6 +463,11 @@ def _weighted_erase(
     max_dc2 = (max_log_w * delta) ** 2 * (1.0 + 1e-9)  # Δc/δ ≥ −ln τ fails eq. 2 alone
     for i in range(m):
         u, v, reach = table[i, 1], table[i, 2], table[i, 6]
+        # eq. 2's colour term counts within the reach a dense cloud's spacing gives
+        # (point_spacing_m), or everywhere with reach_colour
+        coloured = np.inf if reach_colour else half
+        if not reach_colour and reach_scale > 0.0:
+            coloured = max(half, reach_scale / table[i, 0])
         # a centre within `reach` px of u_i has its pixel (floor(u + 0.5)) in these cells
         y0 = max(int(math.floor(v - reach + 0.5)), 0) // window
         y1 = min(int(math.floor(v + reach + 0.5)) // window + 1, gh)
@@ -484,16 +489,14 @@ def _weighted_erase(
                 dc2 = dr * dr + dg * dg + db * db
                 # most pairs differ in colour by more than eq. 2 allows at any distance:
                 # reject them before the square roots (max_dc2's margin changes no decision)
-                # the reach a dense cloud's spacing gives (point_spacing_m): colour counts there
-                base = half if reach_scale <= 0.0 else max(half, reach_scale / table[i, 0])
-                within = (abs(du) <= base) & (abs(dv) <= base)
-                if dc2 > max_dc2 and (reach_colour or within):
+                within = (abs(du) <= coloured) & (abs(dv) <= coloured)
+                if dc2 > max_dc2 and within:
                     continue
                 dd = math.sqrt(du * du + dv * dv)
                 # eq. 2: W = exp(−(Δd/γ + Δc/δ)) > τ  ⇔  Δd/γ + Δc/δ < −ln τ, with Δd in
                 # units of the supporter's reach: as close relative to its spacing
                 shrink = 1.0 if reach <= half else half / reach
-                colour = math.sqrt(dc2) / delta if (reach_colour or within) else 0.0
+                colour = math.sqrt(dc2) / delta if within else 0.0
                 if dd * shrink / gamma + colour >= max_log_w:
                     continue
                 # eq. 3 as written, offsets in pixels: arctan(dz / dd) > θ  ⇔  dz > tan θ · dd
