@@ -578,6 +578,22 @@ def test_an_unclassified_cloud_is_named_once_per_cache(images, caplog):
     assert not [r for r in caplog.records if "detect.classes" in r.getMessage()]
 
 
+def test_a_mostly_unclassified_cloud_is_named_once_per_cache(images, caplog):
+    # a tenth of the points keep their classes (useful ones among them), the rest are class 1
+    cloud = make_cloud(board=True)
+    codes = cloud.classification.copy()
+    codes[np.arange(len(codes)) % 10 != 0] = 1
+    mostly = PointCloud(cloud.xyz, cloud.origin, codes)
+    cache = SurfaceCache()
+    with caplog.at_level("WARNING", logger="streetcd.detect.chain"):
+        run(images, mostly, cache)
+        run(images, mostly, cache)
+    said = [r.getMessage() for r in caplog.records if "detect.classes" in r.getMessage()]
+    assert len(said) == 1
+    assert "90.0 % of the reference points have a code in no role" in said[0]
+    assert "1: 90.0 %" in said[0] and "inferred from the points' geometry" in said[0]
+
+
 @pytest.mark.parametrize(
     "values, message",
     [

@@ -53,7 +53,7 @@ from streetcd.detect.graphcut import (
 from streetcd.detect.intensity import intensity_change, intensity_codes
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions
-from streetcd.detect.roles import cloud_roles, useless_classes
+from streetcd.detect.roles import cloud_roles, mostly_roleless, useless_classes
 from streetcd.detect.silhouette import near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
 from streetcd.detect.sweep import nearer_depth_change
@@ -435,11 +435,13 @@ def _nearer(
 
 def _check_classes(cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None) -> None:
     """Warn when the cloud's classes are of no use to the detector (its codes are not in the
-    class map, or it is unclassified): once per cache (a worker's run), or at every call
-    without one."""
+    class map, or it is unclassified), or when most of its points are in no role: once per
+    cache (a worker's run), or at every call without one."""
     if cache is not None and not cache.first_time("classes checked"):
         return
     why = useless_classes(cloud.classification, params.classes)
+    if why is None:  # useful classes, but on a minority of the points
+        why = mostly_roleless(cloud.classification, params.classes)
     if why is not None:
         log.warning(why)
 

@@ -89,9 +89,7 @@ def infers(classification: np.ndarray, class_map: ClassMap) -> bool:
         return False
     if class_map.infer == "always" or useless_classes(classification, class_map) is not None:
         return True
-    counts = np.bincount(np.asarray(classification, np.uint8), minlength=256)
-    roleless = int(counts[_table(class_map) == classes.UNCLASSIFIED].sum())
-    return roleless > MAX_ROLELESS_SHARE * int(counts.sum())
+    return mostly_roleless(classification, class_map) is not None
 
 
 def _timed_inference(xyz: np.ndarray) -> np.ndarray:
@@ -118,11 +116,6 @@ def useless_classes(classification: np.ndarray, class_map: ClassMap) -> str | No
     useful = int(counts[~np.isin(table, plain)].sum())
     if useful >= MIN_USEFUL_SHARE * total:
         return None
-    top = ", ".join(
-        f"{code}: {100 * counts[code] / total:.1f} %"
-        for code in np.argsort(counts)[::-1][:4]
-        if counts[code]
-    )
     meanwhile = (
         "expect more false alarms on trees and roads"
         if class_map.infer == "off"
@@ -131,5 +124,36 @@ def useless_classes(classification: np.ndarray, class_map: ClassMap) -> str | No
     return (
         f"only {100 * useful / total:.2f} % of the reference points have a class the detector "
         f"uses (vegetation, building, pole, sign, railing, furniture, vehicle; codes by share: "
-        f"{top}): set detect.classes in the config to the cloud's own codes; {meanwhile}"
+        f"{_top_codes(counts)}): set detect.classes in the config to the cloud's own codes; "
+        f"{meanwhile}"
+    )
+
+
+def mostly_roleless(classification: np.ndarray, class_map: ClassMap) -> str | None:
+    """Why the roles of most of a cloud's points (N,) uint8 (its own codes) are missing: more
+    than ``MAX_ROLELESS_SHARE`` of them have a code in no role of the class map; None when
+    fewer do. With ``infer: auto`` those points' roles are then inferred."""
+    counts = np.bincount(np.asarray(classification, np.uint8), minlength=256)
+    total = int(counts.sum())
+    roleless = int(counts[_table(class_map) == classes.UNCLASSIFIED].sum())
+    if total == 0 or roleless <= MAX_ROLELESS_SHARE * total:
+        return None
+    meanwhile = (
+        "they count as unclassified (detect.classes.infer is off)"
+        if class_map.infer == "off"
+        else "their roles are inferred from the points' geometry (detect.classes.infer)"
+    )
+    return (
+        f"{100 * roleless / total:.1f} % of the reference points have a code in no role of "
+        f"detect.classes (codes by share: {_top_codes(counts)}): {meanwhile}"
+    )
+
+
+def _top_codes(counts: np.ndarray) -> str:
+    """The four commonest codes of (256,) counts with their shares, as text."""
+    total = int(counts.sum())
+    return ", ".join(
+        f"{code}: {100 * counts[code] / total:.1f} %"
+        for code in np.argsort(counts)[::-1][:4]
+        if counts[code]
     )
