@@ -668,7 +668,10 @@ def _build(cls: type, values: dict[str, Any], where: str) -> Any:
             value = tuple(value)
         _check_type(value, sub, f"{where}.{name}")
         kwargs[name] = value
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except InputError as exc:  # a value out of its range: say where it was given
+        raise InputError(f"{where}: {exc}") from None
 
 
 # YAML scalars by the field types the dataclasses declare (bool is an int to Python: refused)
@@ -714,10 +717,12 @@ def config_from_dict(values: dict[str, Any] | None, where: str = "config") -> Co
     unknown = sorted(set(values) - {"detect", "run"})
     if unknown:
         raise InputError(f"{where}: unknown block(s) {', '.join(unknown)} (known: detect, run)")
-    return Config(
-        params_from_dict(values.get("detect") or {}, f"{where}: detect"),
-        _build(RunParams, values.get("run") or {}, f"{where}: run"),
-    )
+    detect = params_from_dict(values.get("detect") or {}, f"{where}: detect")
+    run = _build(RunParams, values.get("run") or {}, f"{where}: run")
+    try:
+        return Config(detect, run)
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
 
 
 def config_to_dict(config: Config) -> dict[str, Any]:

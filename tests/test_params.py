@@ -102,6 +102,18 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
     path.write_text("detect: [1, 2\n")
     with pytest.raises(InputError, match=r"night.yaml: not valid YAML \(line 2, column 1\)"):
         load_config(path)
+    # a number out of its range names the file and the block it was given in
+    path.write_text("detect:\n  surface:\n    spacing_edge_factor: -1\n")
+    with pytest.raises(
+        InputError, match=r"night.yaml: detect.surface: parameter spacing_edge_factor = -1 must"
+    ):
+        load_config(path)
+    path.write_text("detect:\n  texture:\n    min_foreshortening: .nan\n")
+    with pytest.raises(InputError, match=r"night.yaml: detect.texture: .* = nan must be in"):
+        load_config(path)
+    path.write_text("run:\n  segments:\n    max_candidates: 1\n")  # below n_neighbours (3)
+    with pytest.raises(InputError, match=r"night.yaml: parameter run.segments.max_candidates"):
+        load_config(path)
 
 
 def test_the_results_hash_covers_exactly_what_changes_results():
