@@ -107,8 +107,7 @@ def useless_classes(classification: np.ndarray, class_map: ClassMap) -> str | No
     """Why the classes of a cloud (N,) uint8 (its own codes) are of no use to the detector,
     or None when they are: fewer than ``MIN_USEFUL_SHARE`` of the points are in a role
     besides the ground and the road (an unclassified cloud, or codes the class map lacks)."""
-    counts = np.bincount(np.asarray(classification, np.uint8), minlength=256)
-    total = int(counts.sum())
+    counts, total = _code_counts(classification)
     if total == 0:
         return None
     table = _table(class_map)
@@ -133,8 +132,7 @@ def mostly_roleless(classification: np.ndarray, class_map: ClassMap) -> str | No
     """Why the roles of most of a cloud's points (N,) uint8 (its own codes) are missing: more
     than ``MAX_ROLELESS_SHARE`` of them have a code in no role of the class map; None when
     fewer do. With ``infer: auto`` those points' roles are then inferred."""
-    counts = np.bincount(np.asarray(classification, np.uint8), minlength=256)
-    total = int(counts.sum())
+    counts, total = _code_counts(classification)
     roleless = int(counts[_table(class_map) == classes.UNCLASSIFIED].sum())
     if total == 0 or roleless <= MAX_ROLELESS_SHARE * total:
         return None
@@ -147,6 +145,12 @@ def mostly_roleless(classification: np.ndarray, class_map: ClassMap) -> str | No
         f"{100 * roleless / total:.1f} % of the reference points have a code in no role of "
         f"detect.classes (codes by share: {_top_codes(counts)}): {meanwhile}"
     )
+
+
+def _code_counts(classification: np.ndarray) -> tuple[np.ndarray, int]:
+    """(256,) points per class code of a cloud's classification (N,) uint8, and N."""
+    counts = np.bincount(np.asarray(classification, np.uint8), minlength=256)
+    return counts, int(counts.sum())
 
 
 def _top_codes(counts: np.ndarray) -> str:

@@ -45,6 +45,7 @@ from streetcd.detect.correlate import (
     camera_rays,
     warp_neighbour,
 )
+from streetcd.geometry.camera import to_camera
 from streetcd.types import Intrinsics, Pose
 
 
@@ -138,7 +139,7 @@ def texture_change(
             nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
             warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
             if surface is not None:
-                centre = pose_p.R @ nb_pose.center + pose_p.t  # the neighbour, in p's camera
+                centre = to_camera(nb_pose.center[None], pose_p)[0]  # the neighbour, in p's frame
                 valid &= foreshortening(*surface, centre) >= params.min_foreshortening
             offset = (0, 0)
             if background is not None:
