@@ -64,8 +64,10 @@ class ZBufferParams:
     # our addition (issue 16): false drops eq. 2's colour term for a supporter that only the
     # cloud's own sparser spacing reaches (farther than max(w1 / 2, f · point_spacing_m / z)):
     # on a sparse near object the image's colours 50 px apart are not alike, and the wall
-    # behind it stayed visible (true: the colour term everywhere)
-    reach_colour: bool = True
+    # behind it stayed visible. Part of the sparse-cloud defaults (docs/TUNING.md,
+    # seventeenth round); a dense cloud is the same either way (true: the colour term
+    # everywhere, the paper)
+    reach_colour: bool = False
 
     def __post_init__(self) -> None:
         _check(self.block_window_px >= 1, "block_window_px", self.block_window_px, ">= 1")
@@ -97,9 +99,9 @@ class SurfaceParams:
     # our addition (issue 16): > 0 lets a triangle's edges reach this many projected point
     # spacings f·s/z (s: the cloud's measured spacing of a vertex's class,
     # streetcd.detect.spacing) where that exceeds max_edge_px: sparse clouds keep a surface.
-    # Off: it gives the real case's near road a surface that the car's own bonnet hides from
-    # the neighbours (docs/DECISIONS.md); 8 for sparse clouds without that
-    spacing_edge_factor: float = 0.0
+    # 8, with spacing_edge_min_spacing_m 0.04 (dense clouds keep the paper's limit) and
+    # spacing_edge_same_role (docs/TUNING.md, seventeenth round); 0 = the fixed limit alone
+    spacing_edge_factor: float = 8.0
     # our addition (issue 16): > 0 lets a triangle span this many s in depth where that
     # exceeds max_depth_jump_m (s of its densest vertex); 0 = the fixed jump alone. 10: a
     # dense MLS cloud (≤ 0.03 m) stays at 0.5 m
@@ -111,7 +113,7 @@ class SurfaceParams:
     # our addition (issue 16): points whose class is measured denser than this (metres)
     # never widen edges: max_edge_px already suits a mobile-mapping cloud (≤ 0.03 m), where a
     # longer edge only bridges a real gap; 0 = every class
-    spacing_edge_min_spacing_m: float = 0.0
+    spacing_edge_min_spacing_m: float = 0.04
     # our addition (issue 16): points whose class is measured sparser than this (metres)
     # never widen edges: a dense mobile-mapping cloud seen from near (a pedestrian's camera,
     # 2-5 m from the objects) widens, a sparse automotive LiDAR keeps the fixed limit; 0 = no cut
@@ -119,6 +121,11 @@ class SurfaceParams:
     # our addition (issue 16): roles whose points may widen edges (streetcd.classes codes;
     # a triangle widens only if all its vertices do); () = every role
     spacing_edge_classes: tuple[int, ...] = ()
+    # our addition (issue 16): a triangle longer than max_edge_px is kept only when its three
+    # vertices have one role: widening bridges the gaps of one sparsely sampled surface, not
+    # the step from an object to the ground or the wall behind it (docs/TUNING.md,
+    # seventeenth round); False = any roles
+    spacing_edge_same_role: bool = True
 
     def __post_init__(self) -> None:
         _check(self.max_depth_jump_m > 0, "max_depth_jump_m", self.max_depth_jump_m, "> 0")
@@ -601,6 +608,8 @@ class Config:
                 del detect["surface"][key]
         if self.detect.zbuffer.reach_colour:  # eq. 2's colour term everywhere: older hashes hold
             del detect["zbuffer"]["reach_colour"]
+        if not self.detect.surface.spacing_edge_same_role:  # any roles: older hashes hold
+            del detect["surface"]["spacing_edge_same_role"]
         if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold
             for key in [k for k in detect["correlate"] if k.startswith("nearer")]:
                 del detect["correlate"][key]

@@ -12,6 +12,7 @@ from streetcd.config import (
     GraphCutParams,
     RunParams,
     SegmentParams,
+    SurfaceParams,
     TextureParams,
     ZBufferParams,
     config_from_dict,
@@ -119,21 +120,28 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
 def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
-    # so it must come from a change of the results (2026-11-29, sixteenth round: the rules of
-    # the inferred roles, version 2, and the texture cue's foreshortening test;
-    # 7fee81a419188dbe before, from the eighth round: roles inferred for unclassified clouds,
-    # the intensity check, spacing-aware surfaces and z-buffer, the texture cue's global
-    # shift; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "b391d095e4e6e3b2"
+    # so it must come from a change of the results (2026-11-29, seventeenth round: the
+    # sparse-cloud surface on by default; b391d095e4e6e3b2 before, from the sixteenth round:
+    # the rules of the inferred roles, version 2, and the texture cue's foreshortening test;
+    # 7fee81a419188dbe before that, from the eighth round; 55a05b5c9150e8fc before that)
+    assert base.results_hash() == "e71e5cdb50285c5f"
     # a switch added off keeps the hash; on, it changes it
     nearer_on = Config(DetectParams(correlate=CorrelateParams(nearer_weight=1.0)))
-    assert nearer_on.results_hash() == "e061e34aaf2cae12"
-    no_reach_colour = Config(DetectParams(zbuffer=ZBufferParams(reach_colour=False)))
-    assert no_reach_colour.results_hash() not in (base.results_hash(), nearer_on.results_hash())
+    assert nearer_on.results_hash() == "2baacca3072d41fe"
+    reach_colour = Config(DetectParams(zbuffer=ZBufferParams(reach_colour=True)))
+    assert reach_colour.results_hash() not in (base.results_hash(), nearer_on.results_hash())
+    # the surface and z-buffer of the sixteenth round's defaults: its hash
+    dense_surface = SurfaceParams(
+        spacing_edge_factor=0.0, spacing_edge_min_spacing_m=0.0, spacing_edge_same_role=False
+    )
+    sixteenth = DetectParams(surface=dense_surface, zbuffer=ZBufferParams(reach_colour=True))
+    assert Config(sixteenth).results_hash() == "b391d095e4e6e3b2"
     # without inference the rules' version is left out, and without the foreshortening test
     # its setting: the hash of the settings before both (7fee81a419188dbe with infer off)
-    before = DetectParams(
-        classes=ClassMap(infer="off"), texture=TextureParams(min_foreshortening=0.0)
+    before = dataclasses.replace(
+        sixteenth,
+        classes=ClassMap(infer="off"),
+        texture=TextureParams(min_foreshortening=0.0),
     )
     assert Config(before).results_hash() == "5d2d95da524a50c4"
     texture_off = Config(DetectParams(texture=TextureParams(enabled=False)))

@@ -76,7 +76,13 @@ def _lattice(step_px: float, depth: float | np.ndarray = 5.0):
 
 
 def _paper(edge_px: float = 15.0) -> SurfaceParams:
-    return SurfaceParams(max_edge_px=edge_px * REFERENCE_WIDTH_PX / W)
+    """The paper's fixed filters: no widening (the defaults widen sparse classes)."""
+    return SurfaceParams(
+        max_edge_px=edge_px * REFERENCE_WIDTH_PX / W,
+        spacing_edge_factor=0.0,
+        spacing_edge_min_spacing_m=0.0,
+        spacing_edge_same_role=False,
+    )
 
 
 def test_edge_limit_reaches_the_projected_spacing_times_the_factor():
@@ -157,11 +163,14 @@ def test_a_sparse_wall_keeps_its_surface_with_the_spacing_filters():
     image = np.full((H, W, 3), 120, np.uint8)
     pose = look_at([0, 0, 0], [0, 6, 0])
     base = DetectParams()
-    paper, _ = surface_for_view(wall, codes, image, INTR, pose, base)
+    fixed = replace(base, surface=replace(base.surface, spacing_edge_factor=0.0))
+    paper, _ = surface_for_view(wall, codes, image, INTR, pose, fixed)
     params = replace(base, surface=replace(base.surface, spacing_edge_factor=3.0))
     sparse, _ = surface_for_view(wall, codes, image, INTR, pose, params)
     assert paper.valid.mean() < 0.01
     assert sparse.valid.mean() > 0.7  # the wall fills 300 × 200 px of the 320 × 240 image
+    defaults, _ = surface_for_view(wall, codes, image, INTR, pose, base)  # 8 · f · s / z
+    assert defaults.valid.mean() > 0.7
 
 
 def test_edge_widening_leaves_near_vertices_and_other_roles_alone():
@@ -186,8 +195,16 @@ def test_edge_widening_leaves_near_vertices_and_other_roles_alone():
     )
     cols = np.flatnonzero(ground.valid.any(axis=0))
     assert cols.min() == 40 + 4 * 25 and cols.max() == 240
-    # a cloud measured as sparse as the floor (0.5 m ≥ 0.4 m) widens, a denser one does not
+    # one role per widened triangle: both pieces whole, the 25 px step between them open
     flat, half = np.full(81, 5.0), (np.full(81, 0.5), F)
+    same = view_surface(
+        uv, flat, cls, (H, W), replace(widened, spacing_edge_same_role=True), spacing=half
+    )
+    cols = np.flatnonzero(same.valid.any(axis=0))
+    assert set(cols) == set(range(40, 40 + 3 * 25 + 1)) | set(range(40 + 4 * 25, 241))
+    assert same.valid.sum() == 201 * cols.size
+    assert view_surface(uv, flat, cls, (H, W), widened, spacing=half).valid.sum() == 201 * 201
+    # a cloud measured as sparse as the floor (0.5 m ≥ 0.4 m) widens, a denser one does not
     at_floor = replace(widened, spacing_edge_min_spacing_m=0.4)
     assert view_surface(uv, flat, cls, (H, W), at_floor, spacing=half).valid.sum() == 201 * 201
     dense = replace(widened, spacing_edge_min_spacing_m=0.6)

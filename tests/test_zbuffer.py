@@ -244,7 +244,7 @@ def test_without_reach_colour_a_textured_near_pole_still_hides_the_wall_behind_i
     b5 = block_zbuffer(points.uv, points.depth, (H, W), 5)
     # the pole's 0.06 m is the cloud's own measured spacing, sparser than point_spacing_m
     own = np.full(len(points.depth), 0.06)
-    colour = ZBufferParams(point_spacing_m=0.01)
+    colour = ZBufferParams(point_spacing_m=0.01, reach_colour=True)
     kept = weighted_zbuffer(points.uv, points.depth, image, colour, focal_px=F, spacing_m=own)
     assert occluded[kept].sum() > 0.4 * occluded[b5].sum()  # 514 of 1,102
     near = dataclasses.replace(colour, reach_colour=False)

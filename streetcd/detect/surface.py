@@ -199,14 +199,18 @@ def _dist2(uv, a, b):  # pragma: no cover - compiled
 def _emit(out, n, a, b, c, uv, depth, lim):  # pragma: no cover - compiled
     """Append triangle (a, b, c) sorted if it passes the depth-jump, edge and area filters.
 
-    lim : (max_jump m, max_edge² px², jump_pt (N,) m, edge_pt (N,) px): a triangle may span
-    max(max_jump, the least jump_pt of its vertices) in depth and have edges up to
-    max(max_edge, the largest edge_pt of its vertices); (0,) arrays: the scalars alone.
+    lim : (max_jump m, max_edge² px², jump_pt (N,) m, edge_pt (N,) px, role_pt (N,) uint8):
+    a triangle may span max(max_jump, the least jump_pt of its vertices) in depth and have
+    edges up to max(max_edge, the largest edge_pt of its vertices), the latter only when its
+    vertices share one role_pt; (0,) arrays: the scalars alone, any roles.
     """
-    max_jump, max_edge2, jump_pt, edge_pt = lim
+    max_jump, max_edge2, jump_pt, edge_pt, role_pt = lim
     if jump_pt.shape[0] > 0:  # the densest vertex decides: objects stay apart from sparse ground
         max_jump = max(max_jump, min(jump_pt[a], jump_pt[b], jump_pt[c]))
-    if edge_pt.shape[0] > 0 and min(edge_pt[a], edge_pt[b], edge_pt[c]) > 0.0:
+    widen = edge_pt.shape[0] > 0 and min(edge_pt[a], edge_pt[b], edge_pt[c]) > 0.0
+    if widen and role_pt.shape[0] > 0:  # one surface's gaps, not a step between two
+        widen = role_pt[a] == role_pt[b] and role_pt[b] == role_pt[c]
+    if widen:
         # the sparsest vertex decides (its spacing must be bridged), and only where every
         # vertex may widen (0: a vertex near the camera or of a role kept to the fixed limit)
         e = max(edge_pt[a], edge_pt[b], edge_pt[c])
@@ -284,7 +288,10 @@ def _triangulate(
     # apart. Never filter edges shorter than EDGE_FLOOR_CELLS grid cells.
     max_edge = max(scale_px(params.max_edge_px, image_width), EDGE_FLOOR_CELLS * cell_px)
     jump_pt, edge_pt = _spacing_limits(depth, params, spacing, classes)
-    lim = (float(params.max_depth_jump_m), float(max_edge * max_edge), jump_pt, edge_pt)
+    role_pt = np.empty(0, np.uint8)
+    if params.spacing_edge_same_role and classes is not None and edge_pt.shape[0] > 0:
+        role_pt = np.ascontiguousarray(classes, np.uint8)
+    lim = (float(params.max_depth_jump_m), float(max_edge * max_edge), jump_pt, edge_pt, role_pt)
     return _unique_rows(_dual_triangles(labels, seeds, uv, depth, lim))
 
 
