@@ -1,9 +1,11 @@
 """Per-view detector time, step by step, and peak memory, on ONE core.
 
     .venv/bin/python benchmarks/per_view.py [--sizes 1920x1080,4000x3000] [--repeat 3]
+        [--kind sparse] [--config FILE]
 
-For each image size a small synthetic street (6 images) is generated once and cached under
-``out/bench-scenes``; one middle view with 3 neighbours is detected ``--repeat`` times after a
+For each image size a small synthetic street (6 images; ``--kind``: a street kind of
+``streetcd synth --kind``, e.g. ``sparse`` for a tenth of the points) is generated once and
+cached under ``out/bench-scenes``; one middle view with 3 neighbours is detected ``--repeat`` times after a
 warm-up (numba compilation, caches), and the median of every step is printed:
 
 * project + z-buffer (eq. 1–3) and surface (triangulation, rasters) for the view and its
@@ -74,10 +76,11 @@ TIMED_RUNS = ("total", "total_in_a_run")  # whole detect_view calls, timed on th
 N_IMAGES = 6  # enough that the middle view has 3 overlapping neighbours (4 gave it 2)
 
 
-def scene_for(size: tuple[int, int]) -> Path:
+def scene_for(size: tuple[int, int], kind: str | None = None) -> Path:
     from streetcd.eval.evaluate import ensure_scene
 
-    return ensure_scene(SCENES, seed=0, n_images=N_IMAGES, size=size)
+    extra = {} if kind is None else {"kind": kind}  # the default street keeps its cache key
+    return ensure_scene(SCENES, seed=0, n_images=N_IMAGES, size=size, **extra)
 
 
 def _fresh_cloud(scene):
@@ -92,16 +95,15 @@ def _fresh_cloud(scene):
     )
 
 
-def _setup(size: tuple[int, int]):
+def _setup(size: tuple[int, int], kind: str | None = None, config: str | None = None):
     from streetcd.config import load_config
     from streetcd.eval.evaluate import load_scene
     from streetcd.geometry.neighbours import select_neighbours
     from streetcd.io.images import read_image
 
-    scene = load_scene(scene_for(size))
-    params = load_config(
-        ROOT / "configs" / "default.yaml" if (ROOT / "configs" / "default.yaml").exists() else None
-    ).detect
+    scene = load_scene(scene_for(size, kind))
+    default = ROOT / "configs" / "default.yaml"
+    params = load_config(config or (default if default.exists() else None)).detect
     view = scene.views[len(scene.views) // 2]
     nbs = select_neighbours(view, scene.views, n=3)
     if len(nbs) != 3:
@@ -124,7 +126,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.detect.correlate import stretch_lut
     from streetcd.detect.graphcut import cut_changes, node_energy, superpixels
     from streetcd.detect.refine import refined_mask
-    from streetcd.detect.surface import _zbuffer_params_for, rgb8, view_surface
+    from streetcd.detect.surface import _point_spacing, _zbuffer_params_for, rgb8, view_surface
     from streetcd.detect.zbuffer import project_cloud, weighted_zbuffer
 
     t: dict[str, float] = dict.fromkeys(STEPS[:N_STEPS], 0.0)
@@ -140,7 +142,17 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         if len(pts) == 0:
             continue  # detect_view leaves out a neighbour that sees no point
         focal = 0.5 * (intr.fx + intr.fy)
-        kept = pts.take(weighted_zbuffer(pts.uv, pts.depth, img, zparams, focal_px=focal))
+        # the cloud's own spacing per class, as surface_for_view measures and passes it
+        spacing = _point_spacing(cloud.xyz, cloud.classification, pts, params)
+        keep = weighted_zbuffer(
+            pts.uv,
+            pts.depth,
+            img,
+            zparams,
+            focal_px=focal,
+            spacing_m=None if spacing is None else zparams.spacing_factor * spacing,
+        )
+        kept = pts.take(keep)
         t1 = time.perf_counter()
         surf = view_surface(
             kept.uv,
@@ -150,6 +162,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
             params.surface,
             cell_px=zparams.block_window_px,
             colours=None if colours is None else colours[kept.index],
+            spacing=None if spacing is None else (spacing[keep], focal),
         )
         t2 = time.perf_counter()
         t["project_zbuffer"] += t1 - t0
@@ -232,11 +245,13 @@ def baseline_slic_once(image: np.ndarray, params) -> float:
     return time.perf_counter() - t0
 
 
-def run_size(size: tuple[int, int], repeat: int) -> dict:
+def run_size(
+    size: tuple[int, int], repeat: int, kind: str | None = None, config: str | None = None
+) -> dict:
     """Timings (medians) and memory of one size; run in a fresh process."""
     from streetcd.detect.chain import detect_view
 
-    scene, params, view, image, neighbours = _setup(size)
+    scene, params, view, image, neighbours = _setup(size, kind, config)
     rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MiB on Linux
     # surfaces=None: build every surface afresh, as a worker does for a view it has not seen
     detect_view(image, view, neighbours, scene.cloud, params, surfaces=None)  # warm-up
@@ -274,20 +289,24 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1920x1080,4000x3000")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--kind", default=None, help="a street kind of streetcd synth --kind")
+    ap.add_argument("--config", default=None, help="settings instead of configs/default.yaml")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
     from streetcd.run.cluster import WORKER_MALLOC_ENV
 
     if args.child:
         w, h = map(int, args.child.split("x"))
-        print(json.dumps(run_size((w, h), args.repeat)))
+        print(json.dumps(run_size((w, h), args.repeat, args.kind, args.config)))
         return
     results = []
     for spec in args.sizes.split(","):
         w, h = map(int, spec.split("x"))
-        scene_for((w, h))  # generate outside the measured child
+        scene_for((w, h), args.kind)  # generate outside the measured child
+        extra = [] if args.kind is None else ["--kind", args.kind]
+        extra += [] if args.config is None else ["--config", str(Path(args.config).resolve())]
         proc = subprocess.run(
-            [sys.executable, __file__, "--child", spec, "--repeat", str(args.repeat)],
+            [sys.executable, __file__, "--child", spec, "--repeat", str(args.repeat), *extra],
             capture_output=True,
             text=True,
             check=False,
