@@ -401,8 +401,9 @@ class TextureParams:
 INFER_MODES = ("auto", "always", "off")  # ClassMap.infer
 # The version of the roles inferred from the geometry (streetcd.detect.infer_roles and when
 # streetcd.detect.roles infers), in the results hash unless infer is off: 2 (2026-11-29)
-# reads small parts off the ground as foliage and infers for mostly unclassified clouds.
-INFER_RULES = 2
+# reads small parts off the ground as foliage and infers for mostly unclassified clouds; 3
+# (2026-11-29, seventeenth round) gives a railing its foot back from the ground.
+INFER_RULES = 3
 
 
 @dataclass(frozen=True)

@@ -191,6 +191,19 @@ def test_auto_infers_for_a_mostly_unclassified_cloud_and_leaves_a_mostly_classif
     )
 
 
+def test_a_railing_gets_its_foot_back_from_the_ground_and_nothing_else_does(scene, inferred):
+    xyz, want = scene
+    base = np.where(xyz[:, 1] > 4, 0.12, 0.0) + 0.02 * xyz[:, 0]
+    height = xyz[:, 2] - base
+    foot = (height > 0.07) & (height < 0.28)  # within the ground's 0.3 m, clear of FOOT_M
+    assert np.all(inferred[(want == classes.RAILING) & foot] == classes.RAILING)
+    # the sidewalk under and beside it stays ground, and so do the pole's and the bin's feet
+    rail_columns = (xyz[:, 0] >= 19.9) & (xyz[:, 0] <= 26.1) & (np.abs(xyz[:, 1] - 7.0) < 0.3)
+    assert np.all(inferred[(want == classes.GROUND) & rail_columns] == classes.GROUND)
+    for role in (classes.POLE, classes.FURNITURE):
+        assert np.all(inferred[(want == role) & foot] == classes.GROUND)
+
+
 def test_a_small_part_that_does_not_stand_on_the_ground_is_foliage_not_a_pole(scene):
     xyz, want = scene
     # a piece of a crown the LiDAR reached apart from its tree, 4.7-5.3 m up, and a pole

@@ -14,7 +14,9 @@ Cheap and deterministic, a few array passes over the points:
    connected parts; each part is given a role by its size: tall and long with a thin
    footprint (a façade seen from the street) a building, thin and small across a pole (tall)
    or furniture (low), long and thin and low a railing, car-sized a vehicle, and the rest
-   (canopies, hedges: a filled footprint) vegetation.
+   (canopies, hedges: a filled footprint) vegetation;
+3. a railing's foot: the points of step 1 more than ``FOOT_M`` above the ground in a railing's
+   voxel columns are railing too.
 
 The road and the sidewalk are not told apart (both have the ground's low weight in eq. 5).
 """
@@ -32,6 +34,9 @@ GROUND_WINDOW_M = 5.0  # wider than a car, narrower than most streets' flat stre
 GROUND_TOLERANCE_M = 0.3  # above a kerb's step (0.10-0.15 m): the sidewalk is ground too
 VOXEL_M = 0.25  # parts closer than this may merge (a bin by a parked car stays apart)
 MAX_HEIGHT_M = 60.0  # heights above the ground are clipped to this (the voxel grid's depth)
+# a ground point this far above the ground surface in a railing's column is the railing's
+# foot (the ground tolerance cuts the lowest 0.3 m off every object; 0: no feet)
+FOOT_M = 0.05
 
 # The part rules, metres: L and W are a part's footprint length and width (from the spread of
 # its voxels), top its highest voxel above the ground.
@@ -66,8 +71,30 @@ def infer_roles(xyz: np.ndarray) -> np.ndarray:
     above = np.flatnonzero(height >= GROUND_TOLERANCE_M)
     if len(above):
         out[above] = part_roles(pts[above, :2], height[above])
+        if FOOT_M > 0:
+            out = with_feet(pts[:, :2], height, out)
     roles[finite] = out
     return roles
+
+
+def with_feet(xy: np.ndarray, height: np.ndarray, roles: np.ndarray) -> np.ndarray:
+    """``roles`` (N,) uint8 with the ground points that lie more than ``FOOT_M`` above the
+    ground surface (``height`` (N,) metres) in a ``VOXEL_M`` column (``xy`` (N, 2) metres)
+    of a railing made railing: the ground tolerance cuts the lowest 0.3 m off every object,
+    a third of a railing, whose colours are then not checked there (docs/TUNING.md,
+    seventeenth round). Only railings: on the real LiDAR the feet of poles took the lawn
+    around them along (full weight in eq. 5 and the texture cue: false alarms)."""
+    railing = roles == classes.RAILING
+    low = np.flatnonzero((roles == classes.GROUND) & (height > FOOT_M))
+    if not railing.any() or not len(low):
+        return roles
+    col, row = _cell_index(xy[:, 0], VOXEL_M), _cell_index(xy[:, 1], VOXEL_M)
+    key = col * (int(row.max()) + 1) + row
+    columns = np.unique(key[railing])
+    at = np.minimum(np.searchsorted(columns, key[low]), len(columns) - 1)
+    out = roles.copy()
+    out[low[columns[at] == key[low]]] = classes.RAILING
+    return out
 
 
 def height_above_ground(xyz: np.ndarray) -> np.ndarray:
