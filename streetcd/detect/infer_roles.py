@@ -82,8 +82,8 @@ def with_feet(xy: np.ndarray, height: np.ndarray, roles: np.ndarray) -> np.ndarr
     ground surface (``height`` (N,) metres) in a ``VOXEL_M`` column (``xy`` (N, 2) metres)
     of a railing made railing: the ground tolerance cuts the lowest 0.3 m off every object,
     a third of a railing, whose colours are then not checked there (docs/TUNING.md,
-    seventeenth round). Only railings: on the real LiDAR the feet of poles took the lawn
-    around them along (full weight in eq. 5 and the texture cue: false alarms)."""
+    seventeenth round). Only railings: on the real LiDAR the feet of poles, made pole,
+    flagged views of the unchanged twin."""
     railing = roles == classes.RAILING
     low = np.flatnonzero((roles == classes.GROUND) & (height > FOOT_M))
     if not railing.any() or not len(low):
