@@ -10,7 +10,7 @@ Cheap and deterministic, a few array passes over the points:
    ``GROUND_WINDOW_M`` opened away (a grey opening keeps slopes and steps wider than the
    window, removes cars, poles and hedges); a point within ``GROUND_TOLERANCE_M`` of it is
    ground;
-2. the rest, binned in 0.5 m voxels of (x, y, height above the ground), split into 3D
+2. the rest, binned in ``VOXEL_M`` voxels of (x, y, height above the ground), split into 3D
    connected parts; each part is given a role by its size: tall and long with a thin
    footprint (a façade seen from the street) a building, thin and small across a pole (tall)
    or furniture (low), long and thin and low a railing, car-sized a vehicle, and the rest
