@@ -126,8 +126,14 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.detect.correlate import stretch_lut
     from streetcd.detect.graphcut import cut_changes, node_energy, superpixels
     from streetcd.detect.refine import refined_mask
-    from streetcd.detect.surface import _point_spacing, _zbuffer_params_for, rgb8, view_surface
-    from streetcd.detect.zbuffer import project_cloud, weighted_zbuffer
+    from streetcd.detect.surface import (
+        _point_spacing,
+        _zbuffer_params_for,
+        rgb8,
+        view_surface,
+        zbuffer_keep,
+    )
+    from streetcd.detect.zbuffer import project_cloud
 
     t: dict[str, float] = dict.fromkeys(STEPS[:N_STEPS], 0.0)
     cloud = scene.cloud
@@ -144,14 +150,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         focal = 0.5 * (intr.fx + intr.fy)
         # the cloud's own spacing per class, as surface_for_view measures and passes it
         spacing = _point_spacing(cloud.xyz, cloud.classification, pts, params)
-        keep = weighted_zbuffer(
-            pts.uv,
-            pts.depth,
-            img,
-            zparams,
-            focal_px=focal,
-            spacing_m=None if spacing is None else zparams.spacing_factor * spacing,
-        )
+        keep = zbuffer_keep(pts, img, zparams, focal, spacing)
         kept = pts.take(keep)
         t1 = time.perf_counter()
         surf = view_surface(

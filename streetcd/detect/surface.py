@@ -601,14 +601,7 @@ def surface_for_view(
     zparams = _zbuffer_params_for(params.zbuffer, intrinsics.width)
     focal_px = 0.5 * (intrinsics.fx + intrinsics.fy)
     spacing = _point_spacing(xyz_local, cloud_classes, points, params)
-    keep = weighted_zbuffer(
-        points.uv,
-        points.depth,
-        image,
-        zparams,
-        focal_px=focal_px,
-        spacing_m=None if spacing is None else zparams.spacing_factor * spacing,
-    )
+    keep = zbuffer_keep(points, image, zparams, focal_px, spacing)
     kept = points.take(keep)
     surface = view_surface(
         kept.uv,
@@ -621,6 +614,27 @@ def surface_for_view(
         spacing=None if spacing is None else (spacing[keep], focal_px),
     )
     return surface, kept
+
+
+def zbuffer_keep(
+    points: ProjectedPoints,
+    image: np.ndarray,
+    zparams: ZBufferParams,
+    focal_px: float,
+    spacing: np.ndarray | None,
+) -> np.ndarray:
+    """Indices of the projected ``points`` the metric z-buffer keeps (eq. 1–3,
+    :func:`streetcd.detect.zbuffer.weighted_zbuffer`) in ``image`` (H, W, 3) uint8, each
+    point's window reaching ``zparams.spacing_factor`` × its class spacing ``spacing`` (M,)
+    metres (:func:`_point_spacing`; None: ``zparams.point_spacing_m`` alone)."""
+    return weighted_zbuffer(
+        points.uv,
+        points.depth,
+        image,
+        zparams,
+        focal_px=focal_px,
+        spacing_m=None if spacing is None else zparams.spacing_factor * spacing,
+    )
 
 
 def _point_spacing(
