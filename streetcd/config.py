@@ -335,6 +335,9 @@ class RefineParams:
         _check(self.iterations >= 1, "iterations", self.iterations, ">= 1")
 
 
+SEE_THROUGH = (classes.RAILING,)  # the roles one sees through: railings and fences
+
+
 @dataclass(frozen=True)
 class TextureParams:
     """Texture cue (:mod:`streetcd.detect.texture`; an addition to the paper, whose eq. 5
@@ -366,6 +369,16 @@ class TextureParams:
     # edge-on from one side. 0.5, set once: a window seen at half its width (0: every
     # neighbour everywhere; docs/TUNING.md, sixteenth round)
     min_foreshortening: float = 0.5
+    # our addition (issue 16): the footprint of these roles (objects one sees through: a
+    # railing's bars and the wall behind them) is also tested under two hypotheses of the old
+    # scene, one opaque plane at the object's depth and what is behind it: a hedge or a board
+    # where a railing stood is explained by neither (streetcd.detect.seethrough; on since
+    # 2026-11-29, empty: off; docs/TUNING.md, eighteenth round)
+    see_through_classes: tuple[int, ...] = SEE_THROUGH
+    # ... both images low-passed first with a Gaussian of this many metres at the object's
+    # depth (σ = blur_m · f / z px): a railing's bars (10-12 cm apart) are a grating that no
+    # single depth lines up with the wall behind; its period / 3, set once
+    see_through_blur_m: float = 0.04
 
     def __post_init__(self) -> None:
         _check(self.weight >= 0, "texture.weight", self.weight, ">= 0")
@@ -377,6 +390,12 @@ class TextureParams:
         )
         _check(self.window_px >= 3, "texture.window_px", self.window_px, ">= 3")
         _check(self.min_std >= 0, "texture.min_std", self.min_std, ">= 0")
+        _check(
+            self.see_through_blur_m >= 0,
+            "texture.see_through_blur_m",
+            self.see_through_blur_m,
+            ">= 0",
+        )
         _check(0 < self.scale <= 1, "texture.scale", self.scale, "in (0, 1]")
         _check(
             self.max_work_width_px >= 64,
@@ -595,6 +614,9 @@ class Config:
                 del detect["texture"]["max_global_shift_px"]  # off: older hashes hold
             if not self.detect.texture.min_foreshortening:
                 del detect["texture"]["min_foreshortening"]  # off: older hashes hold
+            if not self.detect.texture.see_through_classes:  # off: older hashes hold
+                del detect["texture"]["see_through_classes"]
+                del detect["texture"]["see_through_blur_m"]
         if self.detect.classes.infer == "off":
             del detect["classes"]["infer"]  # the roles as before it existed: older hashes hold
         else:  # the inference's rules changed the roles of such clouds (2026-11-29): redo them

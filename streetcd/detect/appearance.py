@@ -154,11 +154,11 @@ def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
 def fill_nearest(
     reference: np.ndarray, valid: np.ndarray, where: np.ndarray, reach_px: int = 0
 ) -> np.ndarray:
-    """``reference`` (H, W, 3) with each pixel of ``where`` that has no surface (``valid``
-    False) given the colour of the nearest pixel that has one (a distance transform with
-    nearest-pixel labels, OpenCV's 5×5 L2 mask). ``reach_px`` > 0 looks for that pixel only
-    within the holes' bounding box grown by ``reach_px`` (a gap's own width suffices); 0 looks
-    everywhere."""
+    """``reference`` (H, W, 3) (or any (H, W, …) raster: colours, depths) with each pixel of
+    ``where`` that has no surface (``valid`` False) given the value of the nearest pixel that
+    has one (a distance transform with nearest-pixel labels, OpenCV's 5×5 L2 mask).
+    ``reach_px`` > 0 looks for that pixel only within the holes' bounding box grown by
+    ``reach_px`` (a gap's own width suffices); 0 looks everywhere."""
     holes = where & ~valid
     if not holes.any() or not valid.any():
         return reference
@@ -182,7 +182,8 @@ def fill_nearest(
     box_holes = holes[r0:r1, c0:c1]
     out = reference.copy()
     pick = source[labels[box_holes] - 1]
-    out[r0:r1, c0:c1][box_holes] = reference[r0:r1, c0:c1].reshape(-1, 3)[pick]
+    flat = reference[r0:r1, c0:c1].reshape((-1, *reference.shape[2:]))
+    out[r0:r1, c0:c1][box_holes] = flat[pick]
     return out
 
 

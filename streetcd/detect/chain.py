@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from streetcd.config import DetectParams, scale_px
-from streetcd.detect.appearance import appearance_change
+from streetcd.detect.appearance import appearance_change, footprint
 from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
 from streetcd.detect.correlate import (
     Neighbour,
@@ -54,6 +54,7 @@ from streetcd.detect.intensity import intensity_change, intensity_codes
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions
 from streetcd.detect.roles import cloud_roles, mostly_roleless, useless_classes
+from streetcd.detect.seethrough import see_through_change
 from streetcd.detect.silhouette import near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
 from streetcd.detect.sweep import nearer_depth_change
@@ -383,7 +384,8 @@ def _texture(
     params: DetectParams,
 ) -> np.ndarray:
     """The texture cue ``T_p`` (:mod:`streetcd.detect.texture`) of the view, on the pixels
-    whose old surface is of ``texture.classes`` (all without), weighted by class like eq. 5."""
+    whose old surface is of ``texture.classes`` (all without), and the see-through test over
+    railings (:func:`_see_through`) where it is higher, weighted by class like eq. 5."""
     tp = params.texture
     where = None
     if tp.classes:
@@ -399,8 +401,39 @@ def _texture(
         scale_px(tp.registration_tolerance_px, local.intrinsics.width, minimum=0.0),
         where,
     )
+    if tp.see_through_classes:
+        np.maximum(texture, _see_through(image, surf, local, seen, params), out=texture)
     weigh_low_classes(texture, surf.classes, params.correlate)
     return texture
+
+
+def _see_through(
+    image: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    seen: Sequence[NeighbourView],
+    params: DetectParams,
+) -> np.ndarray:
+    """The see-through test ``S_p`` (:mod:`streetcd.detect.seethrough`) of the view over the
+    footprint of ``texture.see_through_classes``, the appearance check's
+    (:func:`streetcd.detect.appearance.footprint`: a railing's bars, gaps and holes)."""
+    tp, ap = params.texture, params.appearance
+    close_px = int(round(scale_px(ap.gap_px, surf.valid.shape[1]))) | 1
+    own = surf.valid & np.isin(surf.classes, np.asarray(tp.see_through_classes, np.uint8))
+    inside = footprint(surf.classes, tp.see_through_classes, close_px, ~surf.valid, ap.hole_reach)
+    return see_through_change(
+        image,
+        surf.depth,
+        own,
+        surf.valid,
+        inside,
+        local.intrinsics,
+        local.pose,
+        seen,
+        tp,
+        params.correlate.occlusion_tolerance_m,
+        close_px,
+    )
 
 
 def _nearer(

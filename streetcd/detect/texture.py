@@ -50,7 +50,10 @@ from streetcd.types import Intrinsics, Pose
 
 
 def grey(image: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 RGB → (H, W) float32 grey levels in [0, 255]."""
+    """(H, W, 3) uint8 RGB → (H, W) float32 grey levels in [0, 255]; an (H, W) image is taken
+    as grey levels already (as float32)."""
+    if image.ndim == 2:
+        return np.asarray(image, np.float32)
     return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY).astype(np.float32)
 
 
@@ -98,9 +101,11 @@ def texture_change(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``T_p`` of the module docstring for view ``p``, at full resolution.
 
-    image_p : (H, W, 3) uint8 RGB. depth_p : (H, W) float32 metres, the view's old surface
-    (NaN = none). neighbours : (image (h, w, 3) uint8 RGB, depth (h, w) float32, intrinsics,
-    pose, holes) per neighbour, poses in the same local frame as ``pose_p``.
+    image_p : (H, W, 3) uint8 RGB (or float32 grey levels, of any size with the view's
+    aspect: the image is resized to the cue's working size). depth_p : (H, W) float32
+    metres, the view's old surface (NaN = none). neighbours : (image (h, w, 3) uint8 RGB or
+    (h, w) float32 grey, depth (h, w) float32, intrinsics, pose, holes) per neighbour, poses in
+    the same local frame as ``pose_p``.
     registration_px : the registration error to tolerate, in full-resolution pixels: each
     neighbour's NCC is the best over the warped neighbour shifted by up to that much (at the
     cue's scale), as eq. 5's colour envelope tolerates it for single pixels. where : (H, W)
