@@ -73,11 +73,11 @@ def see_through_change(
     image_p : (H, W, 3) uint8 RGB. depth_p : (H, W) float32 metres, the view's old surface
     (NaN = none). own : (H, W) bool, the pixels of the see-through object's own surface.
     valid : (H, W) bool, pixels with a surface. inside : (H, W) bool, the object's footprint.
-    neighbours : as :func:`~streetcd.detect.texture.texture_change`'s. reach_px : how far from a footprint's holes their fill looks for a depth (its gap
-    width; :func:`~streetcd.detect.appearance.fill_nearest`). The neighbours' hole depths
+    neighbours : as :func:`~streetcd.detect.texture.texture_change`'s; their hole depths
     (``holes``) are not used: they take the smallest depth around a hole, which at a
     railing's footprint is the pavement in front of it, and would hide the plane and what is
-    behind it alike.
+    behind it alike. reach_px : how far from a footprint's holes their fill looks for a depth
+    (its gap width; :func:`~streetcd.detect.appearance.fill_nearest`).
     """
     out = np.zeros(depth_p.shape, np.float32)
     if not own.any() or not inside.any():
