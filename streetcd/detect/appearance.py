@@ -136,6 +136,12 @@ def footprint(
     return mask | (big[:h, :w] > 0)
 
 
+def close_width_px(params: AppearanceParams, width: int) -> int:
+    """The odd width in px of the disc that closes an object's footprint (:func:`footprint`)
+    in an image ``width`` px wide: ``params.gap_px`` scaled from ``REFERENCE_WIDTH_PX``."""
+    return int(round(scale_px(params.gap_px, width))) | 1
+
+
 def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
     """(ceil(H/f), ceil(W/f)) uint8: 1 where any pixel of the f × f block of ``mask`` is set
     (an f × f dilation anchored at the block's corner, read at every f-th pixel: OpenCV's
@@ -208,7 +214,7 @@ def appearance_change(
     go, while anything wider keeps its extent: the tolerance eq. 5 has through
     :func:`streetcd.detect.correlate.colour_envelope`.
     """
-    close_px = int(round(scale_px(params.gap_px, valid.shape[1]))) | 1  # odd
+    close_px = close_width_px(params, valid.shape[1])
     checked = (
         footprint(classes, params.classes, close_px, holes=~valid, hole_reach=params.hole_reach)
         if params.gap_px > 0

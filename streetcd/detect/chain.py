@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from streetcd.config import DetectParams, scale_px
-from streetcd.detect.appearance import appearance_change, footprint
+from streetcd.detect.appearance import appearance_change, close_width_px, footprint
 from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
 from streetcd.detect.correlate import (
     Neighbour,
@@ -418,7 +418,7 @@ def _see_through(
     footprint of ``texture.see_through_classes``, the appearance check's
     (:func:`streetcd.detect.appearance.footprint`: a railing's bars, gaps and holes)."""
     tp, ap = params.texture, params.appearance
-    close_px = int(round(scale_px(ap.gap_px, surf.valid.shape[1]))) | 1
+    close_px = close_width_px(ap, surf.valid.shape[1])
     own = surf.valid & np.isin(surf.classes, np.asarray(tp.see_through_classes, np.uint8))
     inside = footprint(surf.classes, tp.see_through_classes, close_px, ~surf.valid, ap.hole_reach)
     return see_through_change(

@@ -44,7 +44,7 @@ import numpy as np
 from scipy import ndimage
 
 from streetcd.config import AppearanceParams, scale_px
-from streetcd.detect.appearance import footprint
+from streetcd.detect.appearance import close_width_px, footprint
 
 _DEFAULTS = AppearanceParams()
 # Intensity is laid out by the surface rasteriser like 8-bit colours: ln(1 + i) of the
@@ -127,7 +127,7 @@ def intensity_change(
     if not objects.any():
         return out
     width = valid.shape[1]
-    close_px = int(round(scale_px(params.gap_px, width))) | 1
+    close_px = close_width_px(params, width)
     if params.gap_px > 0:
         checked = footprint(classes, params.classes, close_px, ~valid, params.hole_reach)
     # the surroundings' colour is smooth: it is taken on f × f blocks (cost: docs/DECISIONS.md)
