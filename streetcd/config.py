@@ -423,6 +423,10 @@ INFER_MODES = ("auto", "always", "off")  # ClassMap.infer
 # reads small parts off the ground as foliage and infers for mostly unclassified clouds; 3
 # (2026-11-29, seventeenth round) gives a railing its foot back from the ground.
 INFER_RULES = 3
+# The version of the see-through test's code (streetcd.detect.seethrough), in the results hash
+# while it is on: 2 (2026-11-29, nineteenth round) low-passes the images at the texture cue's
+# working size, not at a size of their own (results a little different: docs/TUNING.md).
+SEE_THROUGH_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -617,6 +621,8 @@ class Config:
             if not self.detect.texture.see_through_classes:  # off: older hashes hold
                 del detect["texture"]["see_through_classes"]
                 del detect["texture"]["see_through_blur_m"]
+            else:  # its low-pass moved to the cue's working size (2026-11-29): redo the views
+                detect["texture"]["see_through_version"] = SEE_THROUGH_VERSION
         if self.detect.classes.infer == "off":
             del detect["classes"]["infer"]  # the roles as before it existed: older hashes hold
         else:  # the inference's rules changed the roles of such clouds (2026-11-29): redo them

@@ -15,10 +15,13 @@ from streetcd.detect.texture import (
     _tiles_near,
     foreshortening,
     global_shift,
+    grey,
+    grey_u8,
     local_ncc,
     surface_normals,
     surface_points,
     texture_change,
+    work_size,
 )
 from streetcd.types import Intrinsics, Pose
 
@@ -278,3 +281,18 @@ def test_the_alignment_does_not_take_a_removed_objects_parallax_for_registration
     nbs = [(other, depth_q, INTR, pose_q, None)]
     change, _ = texture_change(view, depth_p, INTR, pose_p, nbs, params, 0.3, 2.0, where=removed)
     assert np.median(change[inner]) > 0.6
+
+
+def test_the_working_size_is_the_scale_capped_at_the_working_width():
+    params = TextureParams(scale=0.5, max_work_width_px=1024)
+    assert work_size(params, (1080, 1920)) == (960, 540)
+    assert work_size(params, (720, 1280)) == (640, 360)
+    assert work_size(params, (3000, 4000)) == (1024, 768)
+
+
+def test_uint8_grey_levels_are_the_float_ones_and_pass_through():
+    rgb = np.random.default_rng(0).integers(0, 256, (7, 9, 3), dtype=np.uint8)
+    g8 = grey_u8(rgb)
+    assert g8.dtype == np.uint8 and g8.shape == (7, 9)
+    assert np.array_equal(grey(g8), grey(rgb))
+    assert grey_u8(g8) is g8

@@ -58,7 +58,7 @@ from streetcd.detect.seethrough import see_through_change
 from streetcd.detect.silhouette import near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
 from streetcd.detect.sweep import nearer_depth_change
-from streetcd.detect.texture import texture_change
+from streetcd.detect.texture import grey_u8, texture_change
 from streetcd.errors import (
     EmptyViewError,
     InputError,
@@ -387,6 +387,10 @@ def _texture(
     whose old surface is of ``texture.classes`` (all without), and the see-through test over
     railings (:func:`_see_through`) where it is higher, weighted by class like eq. 5."""
     tp = params.texture
+    # grey levels once per image (uint8, a quarter of float32's memory): the cue and the
+    # see-through test both read them
+    image = grey_u8(image)
+    seen = [(grey_u8(img), depth, intr, pose, holes) for img, depth, intr, pose, holes in seen]
     where = None
     if tp.classes:
         where = np.isin(surf.classes, np.asarray(tp.classes, dtype=np.uint8))

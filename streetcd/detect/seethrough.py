@@ -30,7 +30,9 @@ lawn edges) stays, and so does the parallax of a hedge's leaves. The low-pass al
 for the texture cue's search over shifts (``registration_tolerance_px``): a registration
 error up to about σ leaves blurred windows correlated, and each neighbour is still aligned
 by its whole-image shift first (``max_global_shift_px``), so the windows are compared in
-place, at a twenty-fifth of the search's cost on a 2 MP view.
+place, at a twenty-fifth of the search's cost on a 2 MP view. The blur is done where the cue
+compares the windows: each image is shrunk once to the cue's working size
+(:func:`~streetcd.detect.texture.work_size`) and blurred there, per group of footprints.
 """
 
 from __future__ import annotations
@@ -43,11 +45,8 @@ import numpy as np
 from streetcd.config import TextureParams
 from streetcd.detect.appearance import fill_nearest
 from streetcd.detect.correlate import NeighbourView
-from streetcd.detect.texture import grey, texture_change
+from streetcd.detect.texture import grey, texture_change, work_size
 from streetcd.types import Intrinsics, Pose
-
-LOW_PASS_PX = 2.0
-"""The blur in px of the shrunk copy :func:`low_pass` blurs (see there)."""
 
 BLUR_STEP = 1.25
 """Footprints whose blur differs by less than this factor share one low-pass (and one pass of
@@ -70,9 +69,10 @@ def see_through_change(
     """``S_p`` of the module docstring for view ``p``: (H, W) float32 in [0, 1], 0 outside
     ``inside`` and in footprints without a pixel of the object's own surface.
 
-    image_p : (H, W, 3) uint8 RGB. depth_p : (H, W) float32 metres, the view's old surface
-    (NaN = none). own : (H, W) bool, the pixels of the see-through object's own surface.
-    valid : (H, W) bool, pixels with a surface. inside : (H, W) bool, the object's footprint.
+    image_p : (H, W, 3) uint8 RGB or (H, W) grey levels (uint8 or float32). depth_p : (H, W)
+    float32 metres, the view's old surface (NaN = none). own : (H, W) bool, the pixels of the
+    see-through object's own surface. valid : (H, W) bool, pixels with a surface. inside :
+    (H, W) bool, the object's footprint.
     neighbours : as :func:`~streetcd.detect.texture.texture_change`'s; their hole depths
     (``holes``) are not used: they take the smallest depth around a hole, which at a
     railing's footprint is the pavement in front of it, and would hide the plane and what is
@@ -84,14 +84,22 @@ def see_through_change(
         return out
     plane = fill_nearest(depth_p, own, inside, reach_px)
     behind = fill_nearest(depth_p, valid & ~own, inside, reach_px)
+    # every image shrunk once to the texture cue's working size, where it compares them, and
+    # low-passed there per group: a 12 MP image shrinks in tens of milliseconds, a blur of
+    # the shrunk copy in one or two
+    view = shrunk_grey(image_p, work_size(params, depth_p.shape))
+    shrunk = [_shrunk(nb, params) for nb in neighbours]
     for sigma, where in blur_groups(
         inside, own, depth_p, intrinsics_p.fx, params.see_through_blur_m
     ):
-        view = low_pass(image_p, sigma)  # texture_change resizes it to its working size
-        blurred = [_low_passed(nb, sigma) for nb in neighbours]
+        view_lp = low_pass(view, sigma * view.shape[1] / depth_p.shape[1])
+        blurred = [
+            (low_pass(g, sigma * g.shape[1] / width), depth, intr, pose, None)
+            for g, width, depth, intr, pose in shrunk
+        ]
         t_plane, t_behind = (
             texture_change(
-                view,
+                view_lp,
                 depth,
                 intrinsics_p,
                 pose_p,
@@ -107,34 +115,37 @@ def see_through_change(
     return out
 
 
-def low_pass(image: np.ndarray, sigma: float) -> np.ndarray:
-    """Grey levels (float32) of ``image`` (H, W, 3) uint8 RGB, blurred by a Gaussian of
-    ``sigma`` px, on a copy shrunk until ``sigma`` is ``LOW_PASS_PX`` of its pixels and
-    returned at that size: what the blur leaves has no finer detail, and a 12 MP image with a
-    10 px blur costs a few milliseconds instead of a tenth of a second."""
+def shrunk_grey(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Grey levels (float32) of ``image`` (H, W, 3) uint8 RGB or (H, W) grey, shrunk to
+    ``size`` (W', H') by area averaging (as the texture cue shrinks its images)."""
     g = grey(image)
-    if sigma <= 0:
+    if (g.shape[1], g.shape[0]) == tuple(size):
         return g
-    h, w = g.shape
-    k = min(1.0, LOW_PASS_PX / sigma)
-    small = (max(1, round(w * k)), max(1, round(h * k)))
-    if small == (w, h):
-        return cv2.GaussianBlur(g, (0, 0), sigma)
-    shrunk = cv2.resize(g, small, interpolation=cv2.INTER_AREA)
-    return cv2.GaussianBlur(shrunk, (0, 0), sigma * small[0] / w)
+    return cv2.resize(g, size, interpolation=cv2.INTER_AREA)
 
 
-def _low_passed(neighbour: NeighbourView, sigma: float) -> NeighbourView:
+def low_pass(grey_levels: np.ndarray, sigma: float) -> np.ndarray:
+    """``grey_levels`` (H, W) float32 blurred by a Gaussian of ``sigma`` px (a copy; as is for
+    ``sigma`` <= 0)."""
+    if sigma <= 0:
+        return grey_levels
+    return cv2.GaussianBlur(grey_levels, (0, 0), sigma)
+
+
+def _shrunk(
+    neighbour: NeighbourView, params: TextureParams
+) -> tuple[np.ndarray, int, np.ndarray, Intrinsics, Pose]:
     """A neighbour (image, depth, intrinsics, pose, holes) as the see-through test warps it:
-    its image low-passed (:func:`low_pass`, at the shrunk size), its depth and camera at that
-    size, no hole depths."""
+    (grey levels, the image's full width, depth, intrinsics, pose), all at the texture cue's
+    working size for the neighbour's own size (:func:`~streetcd.detect.texture.work_size`);
+    its hole depths are left out (:func:`see_through_change`)."""
     image, depth, intrinsics, pose, _ = neighbour
-    blurred = low_pass(image, sigma)
-    h, w = blurred.shape
-    if (h, w) != depth.shape:
-        depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
-        intrinsics = intrinsics.scaled(w / intrinsics.width)
-    return blurred, depth, intrinsics, pose, None
+    size = work_size(params, depth.shape)
+    g = shrunk_grey(image, size)
+    if (size[1], size[0]) != depth.shape:
+        depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+        intrinsics = intrinsics.scaled(size[0] / intrinsics.width)
+    return g, int(np.shape(image)[1]), depth, intrinsics, pose
 
 
 def blur_groups(
