@@ -110,8 +110,8 @@ def texture_change(
     image_p : (H, W, 3) uint8 RGB (or (H, W) grey levels, uint8 or float32, of any size with
     the view's aspect: the image is resized to the cue's working size). depth_p : (H, W)
     float32 metres, the view's old surface (NaN = none). neighbours : (image (h, w, 3) uint8
-    RGB or (h, w) grey levels, depth (h, w) float32, intrinsics, pose, holes) per neighbour, poses in
-    the same local frame as ``pose_p``.
+    RGB or (h, w) grey levels, depth (h, w) float32, intrinsics, pose, holes) per neighbour,
+    poses in the same local frame as ``pose_p``.
     registration_px : the registration error to tolerate, in full-resolution pixels: each
     neighbour's NCC is the best over the warped neighbour shifted by up to that much (at the
     cue's scale), as eq. 5's colour envelope tolerates it for single pixels. where : (H, W)
@@ -125,7 +125,7 @@ def texture_change(
     """
     h, w = depth_p.shape
     small = work_size(params, (h, w))
-    s = min(float(params.scale), params.max_work_width_px / w)
+    s = work_scale(params, w)
     intr_s = intrinsics_p.scaled(small[0] / w)
     depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
     radius = round(registration_px * s)
@@ -169,11 +169,16 @@ def texture_change(
     return full, cv2.resize(support_s, (w, h), interpolation=cv2.INTER_NEAREST)
 
 
+def work_scale(params: TextureParams, width: int) -> float:
+    """The factor the cue shrinks a view ``width`` px wide by: ``params.scale``, or less so
+    that it is never wider than ``params.max_work_width_px``."""
+    return min(float(params.scale), params.max_work_width_px / width)
+
+
 def work_size(params: TextureParams, shape: tuple[int, int]) -> tuple[int, int]:
-    """(W, H) the cue runs at for a view of ``shape`` (H, W): ``params.scale`` of it, never
-    wider than ``params.max_work_width_px``."""
+    """(W, H) the cue runs at for a view of ``shape`` (H, W) (:func:`work_scale`)."""
     h, w = shape
-    s = min(float(params.scale), params.max_work_width_px / w)
+    s = work_scale(params, w)
     return max(1, round(w * s)), max(1, round(h * s))
 
 
