@@ -45,7 +45,7 @@ import numpy as np
 from streetcd.config import TextureParams
 from streetcd.detect.appearance import fill_nearest
 from streetcd.detect.correlate import NeighbourView
-from streetcd.detect.texture import grey, texture_change, work_size
+from streetcd.detect.texture import shrunk_grey, texture_change, work_size
 from streetcd.types import Intrinsics, Pose
 
 BLUR_STEP = 1.25
@@ -113,15 +113,6 @@ def see_through_change(
         )
         np.maximum(out, np.minimum(t_plane, t_behind), out=out, where=where)
     return out
-
-
-def shrunk_grey(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Grey levels (float32) of ``image`` (H, W, 3) uint8 RGB or (H, W) grey, shrunk to
-    ``size`` (W', H') by area averaging (as the texture cue shrinks its images)."""
-    g = grey(image)
-    if (g.shape[1], g.shape[0]) == tuple(size):
-        return g
-    return cv2.resize(g, size, interpolation=cv2.INTER_AREA)
 
 
 def low_pass(grey_levels: np.ndarray, sigma: float) -> np.ndarray:

@@ -55,6 +55,15 @@ def grey(image: np.ndarray) -> np.ndarray:
     return np.asarray(grey_u8(image), np.float32)
 
 
+def shrunk_grey(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Grey levels (float32, :func:`grey`) of ``image`` (H, W, 3) uint8 RGB or (H, W) grey,
+    shrunk to ``size`` (W', H') by area averaging; as they are when already that size."""
+    g = grey(image)
+    if (g.shape[1], g.shape[0]) == tuple(size):
+        return g
+    return cv2.resize(g, size, interpolation=cv2.INTER_AREA)
+
+
 def grey_u8(image: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 RGB → (H, W) uint8 grey levels, the values :func:`grey` gives, at a
     quarter of their memory (a 12 MP image: 12 MB); an (H, W) image is returned as is."""
@@ -135,7 +144,7 @@ def texture_change(
     support_s = np.zeros(depth_s.shape, np.uint8)
     if box is not None:
         rows, cols = box
-        grey_p = cv2.resize(grey(image_p), small, interpolation=cv2.INTER_AREA)[rows, cols]
+        grey_p = shrunk_grey(image_p, small)[rows, cols]
         rays = camera_rays(intr_s)[rows, cols]
         depth_b = np.ascontiguousarray(depth_s[rows, cols])
         change = np.full(depth_b.shape, np.inf, np.float32)
