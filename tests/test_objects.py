@@ -232,6 +232,9 @@ def test_listing_filters_and_opens_read_only(one_night):
     ]
     assert len(list_objects(one_night, limit=1)) == 1
     assert list_objects(one_night, segment="nope") == []
+    bare = list_objects(one_night, with_views=False)  # what the table reads: counts, no list
+    assert [o["views"] for o in bare] == [[], []]
+    assert [{**o, "views": []} for o in all_] == bare
     with pytest.raises(InputError, match="kind"):
         list_objects(one_night, kind="moved")
     with pytest.raises(InputError, match="limit"):
@@ -305,6 +308,10 @@ def test_query_lists_objects_views_and_geojson(one_night):
         assert f["properties"]["overlays"] and all(
             p.endswith("-aaa.jpg") for p in f["properties"]["overlays"]
         )
+    table = run(query_cmd, [*args, "table"]).output.splitlines()
+    for o in data["objects"]:  # the table's view counts, read without the views' list
+        (line,) = [t for t in table if t.startswith(o["id"])]
+        assert f"{o['n_views']:>3}/{o['n_views'] + o['n_without']:<3}" in line
     oid = data["objects"][0]["id"]
     assert run(review_cmd, [oid, "--index", str(one_night), "--status", "confirmed"]).exit_code == 0
     left = json.loads(run(query_cmd, [*args, "json", "--awaiting-review"]).output)

@@ -251,6 +251,7 @@ def run_query(
             min_confidence=min_score,
             transients=transients or status is not None,
             limit=limit if in_sql else None,
+            with_views=fmt != "table",  # the table shows the counts alone
         )
         if sort is not None and not in_sql:
             from streetcd.report.export import sort_objects

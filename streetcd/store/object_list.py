@@ -40,6 +40,7 @@ def list_objects(
     since: str | None = None,
     min_confidence: float | None = None,
     transients: bool = True,
+    with_views: bool = True,
 ) -> list[dict]:
     """The change objects of an index, as plain dicts (see ``docs/DECISIONS.md``, issue 17).
 
@@ -54,6 +55,8 @@ def list_objects(
         ``streetcd query``: the library's readers (the review page, the evaluation) show or
         score every object, transients marked; leaving them out is the command's choice
         for people (docs/DECISIONS.md, 2026-11-25).
+    with_views : False leaves each object's ``views`` list empty (its counts stay): a table
+        of every object of a 10,000-view night spent two thirds of its time reading them.
     Opens the index read-only (never creates or writes a file).
     """
     where, args = _filters(status, segment, kind, bbox)
@@ -77,7 +80,7 @@ def list_objects(
     sql += limit_clause(limit)
     with ChangeIndex(index_path, readonly=True) as idx:
         rows = idx.conn.execute(sql, args).fetchall()
-        views = _views_of(idx.conn, [r["object_id"] for r in rows])
+        views = _views_of(idx.conn, [r["object_id"] for r in rows]) if with_views else {}
         return [_as_dict(r, views.get(r["object_id"], [])) for r in rows]
 
 
