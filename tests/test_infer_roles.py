@@ -12,7 +12,14 @@ from streetcd import classes
 from streetcd.config import ClassMap, Config, DetectParams, config_from_dict
 from streetcd.detect.cache import SurfaceCache
 from streetcd.detect.infer_roles import height_above_ground, infer_roles
-from streetcd.detect.roles import _INFERRED, cloud_roles, infers, role_codes
+from streetcd.detect.roles import (
+    _INFERRED,
+    _code_counts,
+    _table,
+    cloud_roles,
+    infers,
+    role_codes,
+)
 from streetcd.errors import InputError
 from streetcd.types import Intrinsics, PointCloud, Pose, View
 
@@ -147,6 +154,28 @@ def test_auto_infers_only_for_a_cloud_without_useful_classes(scene):
     off = ClassMap(infer="off")
     assert not infers(flat, off)
     assert np.all(cloud_roles(xyz, flat, off) == classes.UNCLASSIFIED)
+
+
+def test_role_codes_are_the_class_maps_table_for_every_code_and_shape():
+    codes = np.arange(256, dtype=np.uint8)
+    for class_map in (ClassMap(), ClassMap(road=(1,), building=(200, 201))):
+        table = _table(class_map)
+        assert np.array_equal(role_codes(codes, class_map), table[codes])
+        assert np.array_equal(
+            role_codes(codes.reshape(16, 16), class_map), table[codes].reshape(16, 16)
+        )
+        assert role_codes(np.zeros(0, np.uint8), class_map).shape == (0,)
+
+
+def test_code_counts_are_taken_once_per_array():
+    codes = np.array([1, 2, 2, 6, 64, 64, 64], np.uint8)
+    counts, total = _code_counts(codes)
+    assert total == 7 and counts[64] == 3 and counts[2] == 2 and counts.sum() == 7
+    assert _code_counts(codes)[0] is counts  # the class checks of one cloud share them
+    assert not counts.flags.writeable
+    other = codes.copy()  # another array: counted on its own
+    assert _code_counts(other)[0] is not counts
+    assert np.array_equal(_code_counts([1, 1, 300 - 256])[0][[1, 44]], [2, 1])  # a plain list
 
 
 def test_roles_are_made_once_per_cloud_and_class_map(scene):
