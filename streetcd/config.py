@@ -281,6 +281,9 @@ class AppearanceParams:
     chroma_weight: float = 2.0  # w_c, weight of the L1 chromaticity difference (0–2)
     brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
     brightness_tolerance: float = 0.5  # ... beyond this (ln units: shadows, exposure)
+    # our addition (issue 16): the colour transfer's model, "linear" (a gain and an offset
+    # per channel, Reinhard's) or "log" (the same on ln(1 + level): exposure and gamma)
+    transfer: str = "linear"
     # our addition (issue 16): a cloud without colours but with intensity gets the intensity
     # check instead (streetcd.detect.intensity: does the inventory still stand out in the
     # image from its surroundings?); False: no check without colours
@@ -309,6 +312,7 @@ class AppearanceParams:
         _check(self.gap_px >= 0, "gap_px", self.gap_px, ">= 0")
         _check(0 <= self.hole_reach <= 1, "hole_reach", self.hole_reach, "in [0, 1]")
         _check(self.dark_level > 0, "dark_level", self.dark_level, "> 0")
+        _check(self.transfer in ("linear", "log"), "transfer", self.transfer, "'linear' or 'log'")
         _check(self.chroma_weight >= 0, "chroma_weight", self.chroma_weight, ">= 0")
         _check(self.brightness_weight >= 0, "brightness_weight", self.brightness_weight, ">= 0")
         _check(
@@ -644,6 +648,8 @@ class Config:
                 del detect["correlate"][key]
         if not self.detect.graphcut.energy_of_mean:  # the mean of eq. 7: older hashes hold
             del detect["graphcut"]["energy_of_mean"]
+        if self.detect.appearance.transfer == "linear":  # Reinhard's: older hashes hold
+            del detect["appearance"]["transfer"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
             for key in [k for k in detect["appearance"] if k.startswith("intensity")]:
                 del detect["appearance"][key]

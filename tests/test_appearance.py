@@ -4,17 +4,20 @@ distance and where it is checked, on small exact images."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from streetcd import classes as cls
 from streetcd.config import AppearanceParams
 from streetcd.detect.appearance import (
     appearance_change,
+    channel_map,
     colour_distance,
     fill_nearest,
     footprint,
     transfer_colours,
 )
 from streetcd.detect.surface import rasterise, rgb8
+from streetcd.errors import InputError
 
 H, W = 100, 100
 
@@ -36,6 +39,31 @@ def test_transfer_cancels_exposure_and_white_balance():
     image = np.clip(ref.astype(np.float32) * (0.7, 0.8, 1.1) + 10, 0, 255).astype(np.uint8)
     mapped = transfer_colours(ref, image, np.ones((H, W), bool))
     assert np.abs(mapped.astype(int) - image.astype(int)).max() <= 1
+
+
+def test_the_log_transfer_cancels_an_exposure_and_a_gamma_and_keeps_dark_levels():
+    rng = np.random.default_rng(0)
+    ref = rng.integers(5, 250, 4000).astype(np.float64)
+    # another camera: 1 + y = e^b (1 + x)^g, a gamma of 1.3 and an exposure of 0.18
+    image = np.round(np.expm1(np.log(0.18) + 1.3 * np.log1p(ref)))
+    mapped = channel_map(ref, image, "log")
+    assert np.abs(mapped[ref.astype(int)] - image).max() < 1  # the image's own rounding
+    assert np.all(np.diff(mapped) > 0)  # monotone: dark stays darker
+    # Reinhard's line through the same samples misses by 17 levels and takes the dark ones
+    # below 0 (then 0 in the table)
+    linear = channel_map(ref, image, "linear")
+    assert np.abs(linear[ref.astype(int)] - image).max() > 10
+    assert linear[10] < 0 < mapped[10]
+    with pytest.raises(InputError, match="transfer model"):
+        channel_map(ref, image, "cubic")
+    with pytest.raises(InputError, match="transfer"):
+        AppearanceParams(transfer="cubic")
+
+
+def test_the_linear_transfer_is_reinhards_gain_and_offset():
+    ref = np.array([10.0, 50.0, 90.0, 130.0])
+    image = 2.0 * ref + 5.0
+    assert np.allclose(channel_map(ref, image, "linear"), 2.0 * np.arange(256) + 5.0)
 
 
 def test_distance_is_zero_for_the_same_colour_and_small_for_a_shadow():

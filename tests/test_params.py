@@ -5,6 +5,7 @@ import dataclasses
 import pytest
 
 from streetcd.config import (
+    AppearanceParams,
     ClassMap,
     Config,
     CorrelateParams,
@@ -134,6 +135,8 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # a switch added off keeps the hash; on, it changes it
     nearer_on = Config(DetectParams(correlate=CorrelateParams(nearer_weight=1.0)))
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
+    log_transfer = Config(DetectParams(appearance=AppearanceParams(transfer="log")))
+    assert log_transfer.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     reach_colour = Config(DetectParams(zbuffer=ZBufferParams(reach_colour=True)))
     assert reach_colour.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     # the surface and z-buffer of the sixteenth round's defaults (with today's rules of the

@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from streetcd.config import AppearanceParams, scale_px
+from streetcd.errors import InputError
 
 _DEFAULTS = AppearanceParams()
 _NEAREST = cv2.INTER_NEAREST_EXACT  # integer upscaling: each block's value on its f × f pixels
@@ -48,7 +49,9 @@ CLOSE_WORK_PX = 16  # the footprint's closing runs on blocks where its disc is a
 STAT_STRIDE = 4  # colour statistics on every 4th row and column: 1/16 of the pixels suffice
 
 
-def transfer_luts(reference: np.ndarray, image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def transfer_luts(
+    reference: np.ndarray, image: np.ndarray, valid: np.ndarray, model: str = "linear"
+) -> np.ndarray:
     """(3, 256) uint8 tables moving the reference colours channel by channel onto the image's
     mean and standard deviation over ``valid`` pixels (Reinhard et al. 2001, per RGB
     channel): a gain and an offset per channel, which exposure, white balance and the
@@ -56,8 +59,9 @@ def transfer_luts(reference: np.ndarray, image: np.ndarray, valid: np.ndarray) -
     the view cannot absorb (a histogram match would map its colours onto whatever the image
     has most of). The statistics are taken on every ``STAT_STRIDE``-th row and column.
 
-    reference, image : (H, W, 3) uint8; valid : (H, W) bool. Identity tables when no pixel
-    is valid.
+    model : "linear", the gain and offset on the levels (Reinhard's), or "log", on
+    ``ln(1 + level)`` (:func:`channel_map`). reference, image : (H, W, 3) uint8; valid :
+    (H, W) bool. Identity tables when no pixel is valid.
     """
     k = STAT_STRIDE
     pick = valid[::k, ::k]
@@ -69,15 +73,36 @@ def transfer_luts(reference: np.ndarray, image: np.ndarray, valid: np.ndarray) -
     ref = reference[::k, ::k][pick].astype(np.float64)  # (N, 3)
     img = image[::k, ::k][pick].astype(np.float64)
     for c in range(3):
-        gain = img[:, c].std() / max(ref[:, c].std(), 1.0)
-        lut = (np.arange(256) - ref[:, c].mean()) * gain + img[:, c].mean()
-        luts[c] = np.clip(np.round(lut), 0, 255)
+        luts[c] = np.clip(np.round(channel_map(ref[:, c], img[:, c], model)), 0, 255)
     return luts
 
 
-def transfer_colours(reference: np.ndarray, image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def channel_map(reference: np.ndarray, image: np.ndarray, model: str = "linear") -> np.ndarray:
+    """(256,) float64: where each level of one channel of the reference goes, given that
+    channel's samples (N,) float64 of the reference and of the image at the same pixels.
+
+    "linear": ``(x − μ_M) · σ_I / σ_M + μ_I``. "log": the same on ``ln(1 + x)``, i.e.
+    ``1 + y = e^b (1 + x)^g``, an exposure and a gamma: the camera's response differs by a
+    power law, and the linear map's offset takes the dark levels of one channel to 0 (a dark
+    green railing's cloud colour (27, 45, 32) became (0, 18, 11), a chromaticity change of
+    0.21 on an object that is still there; docs/TUNING.md, twentieth round).
+    """
+    levels = np.arange(256, dtype=np.float64)
+    if model == "log":
+        lr, li = np.log1p(reference), np.log1p(image)
+        gain = li.std() / max(lr.std(), 1e-3)
+        return np.expm1((np.log1p(levels) - lr.mean()) * gain + li.mean())
+    if model != "linear":
+        raise InputError(f"colour transfer model {model!r} must be 'linear' or 'log'")
+    gain = image.std() / max(reference.std(), 1.0)
+    return (levels - reference.mean()) * gain + image.mean()
+
+
+def transfer_colours(
+    reference: np.ndarray, image: np.ndarray, valid: np.ndarray, model: str = "linear"
+) -> np.ndarray:
     """The whole (H, W, 3) uint8 reference through :func:`transfer_luts`."""
-    luts = transfer_luts(reference, image, valid)
+    luts = transfer_luts(reference, image, valid, model)
     return np.stack([cv2.LUT(reference[..., c], luts[c]) for c in range(3)], axis=-1)
 
 
@@ -225,7 +250,7 @@ def appearance_change(
     out = np.zeros(valid.shape, dtype=np.float32)
     if not checked.any() or not valid.any():
         return out
-    luts = transfer_luts(reference, image, valid)
+    luts = transfer_luts(reference, image, valid, params.transfer)
     ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
     mapped = np.stack([luts[c][ref[:, c]] for c in range(3)], axis=-1)
     out[checked] = colour_distance(image[checked], mapped, params)
