@@ -282,7 +282,8 @@ class AppearanceParams:
     brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
     brightness_tolerance: float = 0.5  # ... beyond this (ln units: shadows, exposure)
     # our addition (issue 16): the colour transfer's model, "linear" (a gain and an offset
-    # per channel, Reinhard's) or "log" (the same on ln(1 + level): exposure and gamma)
+    # per channel, Reinhard's) or "log" (the same on ln(1 + level): exposure and gamma; fewer
+    # false alarms on dark objects, as many true ones lost: docs/TUNING.md, twentieth round)
     transfer: str = "linear"
     # our addition (issue 16): a cloud without colours but with intensity gets the intensity
     # check instead (streetcd.detect.intensity: does the inventory still stand out in the

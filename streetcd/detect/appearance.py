@@ -18,8 +18,9 @@ compared after
 
 1. **colour transfer**: each channel of the reference colours is moved onto the image's
    mean and standard deviation over the pixels that have a surface (a gain and an offset
-   per channel, :func:`transfer_colours`): exposure, white balance and the scanner camera's
-   response cancel;
+   per channel, :func:`transfer_colours`; ``AppearanceParams.transfer = "log"`` fits them to
+   ``ln(1 + level)`` instead, an exposure and a gamma): exposure, white balance and the
+   scanner camera's response cancel;
 2. **an illumination-tolerant distance**: the L1 difference of chromaticities
    ``rgb / (R + G + B + ε)`` (0–2), plus the log-brightness difference beyond a tolerance,
    so cast shadows (darker, same hue) that the scan did not have count little:
