@@ -83,10 +83,9 @@ def channel_map(reference: np.ndarray, image: np.ndarray, model: str = "linear")
     channel's samples (N,) float64 of the reference and of the image at the same pixels.
 
     "linear": ``(x − μ_M) · σ_I / σ_M + μ_I``. "log": the same on ``ln(1 + x)``, i.e.
-    ``1 + y = e^b (1 + x)^g``, an exposure and a gamma: the camera's response differs by a
-    power law, and the linear map's offset takes the dark levels of one channel to 0 (a dark
-    green railing's cloud colour (27, 45, 32) became (0, 18, 11), a chromaticity change of
-    0.21 on an object that is still there; docs/TUNING.md, twentieth round).
+    ``1 + y = e^b (1 + x)^g``, an exposure and a gamma: two cameras' responses differ by a
+    power law, and the linear map's offset can take a channel's dark levels to 0, a change of
+    chromaticity on a dark object that is still there (docs/TUNING.md, twentieth round).
     """
     levels = np.arange(256, dtype=np.float64)
     if model == "log":
