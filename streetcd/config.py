@@ -374,6 +374,11 @@ class TextureParams:
     # edge-on from one side. 0.5, set once: a window seen at half its width (0: every
     # neighbour everywhere; docs/TUNING.md, sixteenth round)
     min_foreshortening: float = 0.5
+    # our addition (issue 16): the view and each warped neighbour low-passed with a Gaussian
+    # of this σ (px at the working size) before the windows are compared: a texture finer
+    # than the whole-pixel search (brick) decorrelates under sub-pixel misregistration
+    # (docs/TUNING.md, twentieth round); 0 = none
+    blur_px: float = 0.0
     # our addition (issue 16): the footprint of these roles (objects one sees through: a
     # railing's bars and the wall behind them) is also tested under two hypotheses of the old
     # scene, one opaque plane at the object's depth and what is behind it: a hedge or a board
@@ -395,6 +400,7 @@ class TextureParams:
         )
         _check(self.window_px >= 3, "texture.window_px", self.window_px, ">= 3")
         _check(self.min_std >= 0, "texture.min_std", self.min_std, ">= 0")
+        _check(self.blur_px >= 0, "texture.blur_px", self.blur_px, ">= 0")
         _check(
             self.see_through_blur_m >= 0,
             "texture.see_through_blur_m",
@@ -623,6 +629,8 @@ class Config:
                 del detect["texture"]["max_global_shift_px"]  # off: older hashes hold
             if not self.detect.texture.min_foreshortening:
                 del detect["texture"]["min_foreshortening"]  # off: older hashes hold
+            if not self.detect.texture.blur_px:
+                del detect["texture"]["blur_px"]  # off: older hashes hold
             if not self.detect.texture.see_through_classes:  # off: older hashes hold
                 del detect["texture"]["see_through_classes"]
                 del detect["texture"]["see_through_blur_m"]

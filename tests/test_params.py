@@ -135,6 +135,8 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # a switch added off keeps the hash; on, it changes it
     nearer_on = Config(DetectParams(correlate=CorrelateParams(nearer_weight=1.0)))
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
+    blurred = Config(DetectParams(texture=TextureParams(blur_px=1.5)))
+    assert blurred.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     log_transfer = Config(DetectParams(appearance=AppearanceParams(transfer="log")))
     assert log_transfer.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     reach_colour = Config(DetectParams(zbuffer=ZBufferParams(reach_colour=True)))

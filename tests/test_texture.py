@@ -160,6 +160,31 @@ def test_an_old_object_in_front_of_a_textured_wall_is_found_and_the_wall_is_not(
     assert not only[~removed].any() and np.allclose(only[inner], change[inner], atol=1e-5)
 
 
+def test_a_fine_texture_half_a_pixel_off_decorrelates_and_the_blur_restores_it():
+    # blocks of 6 cm on the wall 10 m away: about one pixel each, finer than the cue's
+    # whole-pixel search; the neighbour's pose is off by half a pixel at the wall
+    blocks = RNG.uniform(0, 255, (180, 180)).astype(np.float32)
+    fine = cv2.resize(blocks, (1200, 1200), interpolation=cv2.INTER_NEAREST)
+    view, other = _render(fine, 0.0), _render(fine, 1.0)
+    depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    pose_p = Pose(np.eye(3), np.zeros(3))
+    inner = np.zeros(depth.shape, bool)
+    inner[12:-12, 12:-12] = True
+    medians = {}
+    for off_px in (0.0, 0.5):
+        centre = np.array([1.0 + off_px * WALL_Z / INTR.fx, 0.0, 0.0])
+        seen = [(other, depth, INTR, Pose.from_center(np.eye(3), centre), None)]
+        for blur in (0.0, 1.5):
+            params = TextureParams(scale=1.0, window_px=9, max_global_shift_px=0.0, blur_px=blur)
+            change, support = texture_change(
+                view, depth, INTR, pose_p, seen, params, 0.3, blur_px=params.blur_px
+            )
+            medians[off_px, blur] = float(np.median(change[inner & (support > 0)]))
+    assert medians[0.0, 0.0] < 0.02 and medians[0.0, 1.5] < 0.02  # in register: the same wall
+    assert medians[0.5, 0.0] > 0.2  # half a pixel off: the blocks decorrelate
+    assert medians[0.5, 1.5] < 0.08  # low-passed first: the wall again
+
+
 def test_foreshortening_is_the_ratio_of_the_two_cameras_cosines_on_the_surface():
     depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
     depth[:20, :30] = np.nan  # no surface there: no judgement

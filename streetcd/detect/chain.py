@@ -404,6 +404,7 @@ def _texture(
         params.correlate.occlusion_tolerance_m,
         scale_px(tp.registration_tolerance_px, local.intrinsics.width, minimum=0.0),
         where,
+        tp.blur_px,
     )
     if tp.see_through_classes:
         np.maximum(texture, _see_through(image, surf, local, seen, params), out=texture)

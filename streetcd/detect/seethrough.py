@@ -45,7 +45,7 @@ import numpy as np
 from streetcd.config import TextureParams
 from streetcd.detect.appearance import fill_nearest
 from streetcd.detect.correlate import NeighbourView
-from streetcd.detect.texture import shrunk_grey, texture_change, work_size
+from streetcd.detect.texture import low_pass, shrunk_grey, texture_change, work_size
 from streetcd.types import Intrinsics, Pose
 
 BLUR_STEP = 1.25
@@ -113,14 +113,6 @@ def see_through_change(
         )
         np.maximum(out, np.minimum(t_plane, t_behind), out=out, where=where)
     return out
-
-
-def low_pass(grey_levels: np.ndarray, sigma: float) -> np.ndarray:
-    """``grey_levels`` (H, W) float32 blurred by a Gaussian of ``sigma`` px (a copy; as is for
-    ``sigma`` <= 0)."""
-    if sigma <= 0:
-        return grey_levels
-    return cv2.GaussianBlur(grey_levels, (0, 0), sigma)
 
 
 def _shrunk(

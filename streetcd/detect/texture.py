@@ -113,6 +113,7 @@ def texture_change(
     occlusion_tolerance_m: float,
     registration_px: float = 0.0,
     where: np.ndarray | None = None,
+    blur_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``T_p`` of the module docstring for view ``p``, at full resolution.
 
@@ -128,7 +129,9 @@ def texture_change(
     the window, is computed, and the cue is 0 outside it. ``params.max_global_shift_px``
     (at ``REFERENCE_WIDTH_PX``): the largest shift of the whole warped neighbour against the
     view that :func:`global_shift` looks for (0: none); the shifts of ``registration_px`` are
-    searched around the one found.
+    searched around the one found. blur_px : σ (px at the cue's scale) of a Gaussian that
+    low-passes the view and each warped neighbour before they are compared (0: none;
+    ``TextureParams.blur_px``, which the see-through test leaves out: it low-passes itself).
     Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
     textured evidence per pixel).
     """
@@ -144,7 +147,7 @@ def texture_change(
     support_s = np.zeros(depth_s.shape, np.uint8)
     if box is not None:
         rows, cols = box
-        grey_p = shrunk_grey(image_p, small)[rows, cols]
+        grey_p = low_pass(shrunk_grey(image_p, small)[rows, cols], blur_px)
         rays = camera_rays(intr_s)[rows, cols]
         depth_b = np.ascontiguousarray(depth_s[rows, cols])
         change = np.full(depth_b.shape, np.inf, np.float32)
@@ -158,6 +161,7 @@ def texture_change(
         for nb_image, nb_depth, nb_intr, nb_pose, holes in neighbours:
             nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
             warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
+            warped = low_pass(warped, blur_px)
             if surface is not None:
                 centre = to_camera(nb_pose.center[None], pose_p)[0]  # the neighbour, in p's frame
                 valid &= foreshortening(*surface, centre) >= params.min_foreshortening
@@ -176,6 +180,14 @@ def texture_change(
     if where is not None:
         full[~where] = 0.0
     return full, cv2.resize(support_s, (w, h), interpolation=cv2.INTER_NEAREST)
+
+
+def low_pass(grey_levels: np.ndarray, sigma: float) -> np.ndarray:
+    """``grey_levels`` (H, W) float32 blurred by a Gaussian of ``sigma`` px (a copy; as is for
+    ``sigma`` <= 0)."""
+    if sigma <= 0:
+        return grey_levels
+    return cv2.GaussianBlur(grey_levels, (0, 0), sigma)
 
 
 def work_scale(params: TextureParams, width: int) -> float:
