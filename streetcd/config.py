@@ -169,6 +169,11 @@ class CorrelateParams:
     # the nearest-by minimum depth for the occlusion test (streetcd.detect.correlate.hole_depths:
     # near poles leave holes between their sparse points); 0 = holes hide nothing (the paper)
     occluder_fill_px: float = 120.0
+    # [ours] eq. 5's C_p is the second-smallest of the neighbours' differences where three or
+    # more of them see the pixel (two agreeing neighbours, not one, must explain it: one that
+    # matches by chance, moving along its line of sight or over a plain background, no longer
+    # hides what the others see); False = the minimum everywhere (the paper)
+    second_smallest: bool = True  # docs/TUNING.md, twenty-first round
     # our addition (issue 16): the nearer-depth test (streetcd.detect.sweep): the fused change
     # is also max(..., nearer_weight · N_p), N_p how much better a depth in front of the old
     # surface explains the view and its neighbours (added objects); 0 = off, the default: on
@@ -652,6 +657,8 @@ class Config:
             del detect["zbuffer"]["reach_colour"]
         if not self.detect.surface.spacing_edge_same_role:  # any roles: older hashes hold
             del detect["surface"]["spacing_edge_same_role"]
+        if not self.detect.correlate.second_smallest:  # eq. 5's minimum: older hashes hold
+            del detect["correlate"]["second_smallest"]
         if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold
             for key in [k for k in detect["correlate"] if k.startswith("nearer")]:
                 del detect["correlate"][key]

@@ -147,6 +147,40 @@ def test_minimum_over_neighbours_needs_every_neighbour_to_disagree():
     assert np.median(c_bad[both]) > 0.5 and np.median(c_both[both]) < 0.02
 
 
+def test_second_smallest_needs_two_of_three_neighbours_to_agree():
+    """Our addition: where three neighbours see a pixel, one that matches by chance does not
+    decide alone (the second-smallest difference counts); where two see it, the minimum."""
+    image, depth = render_wall(wall_pose(0.0))
+    cls = np.full(depth.shape, classes.BUILDING, np.uint8)
+    stretched = stretch_histogram(image)
+    good, bad, worse = neighbour(-0.6), neighbour(0.6), neighbour(0.3)
+    spoiled = Neighbour(255 - bad.image, bad.depth, INTR, bad.pose)
+    spoiled2 = Neighbour(255 - worse.image, worse.depth, INTR, worse.pose)
+    second = CorrelateParams(second_smallest=True)
+    paper = CorrelateParams(second_smallest=False)
+
+    def change_with(params, *nbs):
+        return raw_change(stretched, depth, cls, INTR, wall_pose(0.0), list(nbs), params)
+
+    c_one, s_one = change_with(second, spoiled)
+    c_two, s_two = change_with(second, spoiled2)
+    c_min, s_min = change_with(paper, good, spoiled, spoiled2)
+    c_2nd, s_2nd = change_with(second, good, spoiled, spoiled2)
+    assert np.array_equal(s_min, s_2nd)
+    three = s_2nd == 3
+    assert three.mean() > 0.7
+    # two neighbours disagree, one matches: the paper's minimum sees nothing, ours a change
+    assert np.median(c_min[three]) < 0.02
+    assert np.array_equal(c_2nd[three], np.minimum(c_one, c_two)[three])
+    assert np.median(c_2nd[three]) > 0.5
+    # only two see the pixel: the minimum, as eq. 5
+    two = s_2nd == 2
+    assert two.any() and np.array_equal(c_2nd[two], c_min[two])
+    # one neighbour that disagrees among three is no change either way
+    c_one_bad, _ = change_with(second, good, neighbour(0.3), spoiled)
+    assert np.median(c_one_bad[three]) < 0.02
+
+
 def test_occluded_pixels_give_no_evidence():
     image, depth = render_wall(wall_pose(0.0))
     cls = np.full(depth.shape, classes.BUILDING, np.uint8)

@@ -19,6 +19,7 @@ from streetcd.cli.detect import detect
 from streetcd.config import (
     AppearanceParams,
     ClassMap,
+    CorrelateParams,
     DetectParams,
     SurfaceParams,
     ZBufferParams,
@@ -41,10 +42,14 @@ WALL_Y = 12.0
 BOARD = (np.array([-0.8, 7.0, 1.0]), np.array([0.8, 8.0, 2.4]))  # a box, 1.6 × 1 × 1.4 m
 CAMERAS = {"p.png": 0.0, "a.png": -1.0, "b.png": 1.0, "c.png": 2.0}
 # Surface filters for these small images: the paper's 30 px edge filter is given at 4000 px
-# width and shrinks to 2.4 px here, below the spacing of the z-buffered points.
+# width and shrinks to 2.4 px here, below the spacing of the z-buffered points. Eq. 5's
+# minimum, as the paper: with the neighbours at x = -1, +1, +2 the default second-smallest
+# difference also marks the strip of wall beside a new board that two of them see behind it
+# (test_the_second_smallest_difference_marks_the_wall_that_two_neighbours_see_hidden).
 PARAMS = DetectParams(
     surface=SurfaceParams(max_edge_px=250.0),
     zbuffer=ZBufferParams(block_window_px=2, weighted_window_px=7),
+    correlate=CorrelateParams(second_smallest=False),
 )
 
 
@@ -173,6 +178,29 @@ def test_a_board_missing_from_the_cloud_is_detected(images):
     assert np.array_equal(result.origin, ORIGIN)
 
 
+def test_the_second_smallest_difference_marks_the_wall_that_two_neighbours_see_hidden(images):
+    """The cost of ``correlate.second_smallest`` (docs/TUNING.md, twenty-first round): the
+    neighbours b and c (x = +1, +2) see the new board in front of the wall just left of it,
+    where the view sees the wall; with the minimum, a (x = -1) explains those pixels, with the
+    second-smallest it does not. The board is found whole, and the strip beside it is no
+    wider than the board's parallax in b (1 m at 7 m against the wall at 12 m: 17 px)."""
+    from dataclasses import replace
+
+    board = render(0.0)[1]
+    cloud = make_cloud(board=False)
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    second = replace(PARAMS, correlate=replace(PARAMS.correlate, second_smallest=True))
+    result = detect_view(images["p.png"], make_view("p.png"), nbs, cloud, second)
+    assert result.mask[board].mean() > 0.95
+    outside = result.mask & ~board
+    assert 0.005 < outside.mean() < 0.02
+    cols = np.flatnonzero(board.any(axis=0))
+    rows = np.flatnonzero(board.any(axis=1))
+    strip = np.zeros_like(board)
+    strip[rows[0] : rows[-1] + 1, cols[0] - 17 : cols[0]] = True  # left of the board
+    assert outside[~strip].sum() <= 0.05 * outside.sum()
+
+
 def test_the_unscanned_half_of_a_near_object_is_not_a_change(images):
     """The scanner saw only the right half of the board (x > 0), the cameras see all of it.
     Without the near-depth hypothesis (streetcd.detect.silhouette) the left half, whose old surface
@@ -283,6 +311,7 @@ def scene_dir(tmp_path_factory, images) -> Path:
     (root / "params.yaml").write_text(
         "detect:\n  surface: {max_edge_px: 250.0}\n"
         "  zbuffer: {block_window_px: 2, weighted_window_px: 7}\n"
+        "  correlate: {second_smallest: false}\n"
     )
     return root
 

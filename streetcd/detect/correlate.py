@@ -53,6 +53,9 @@ _COLOR_RANGE = 255.0  # 8-bit channel range: C = min(1, ‖ΔRGB‖ / 255)
 _RAY_GRID_STEP_PX = 8  # distorted cameras: exact rays on this grid, bilinear in between
 PAIR_SAMPLE_STEP_PX = 8  # pair_lut samples every 8th row and column of p's surface
 PAIR_MIN_SAMPLES = 100  # ... and falls back to q's own stretch below this many shared pixels
+# CorrelateParams.second_smallest: the second-smallest difference counts where at least this
+# many neighbours see a pixel (with two, one that disagrees would decide: the minimum stays)
+SECOND_SMALLEST_FROM = 3
 
 
 @dataclass(frozen=True)
@@ -546,6 +549,10 @@ def raw_change(
 
     Returns ``change`` (H, W) float32 in [0, 1] (0 where no neighbour gives evidence) and
     ``support`` (H, W) uint8, the number of neighbours that gave evidence at each pixel.
+    ``change`` is eq. 5's minimum of the neighbours' differences, or with
+    ``params.second_smallest`` their second-smallest where ``SECOND_SMALLEST_FROM`` or more
+    neighbours see the pixel (our addition: one neighbour that matches by chance does not
+    decide alone).
 
     One fused pass per neighbour (:func:`_correlate_into`, numba) does what
     :func:`warp_neighbour` and :func:`color_distance` do, without the ten full-size
@@ -555,6 +562,9 @@ def raw_change(
     depth_p = np.ascontiguousarray(depth_p, dtype=np.float32)
     rays = _rays_of(intrinsics_p)
     change = np.full(depth_p.shape, np.inf, dtype=np.float32)
+    second = params.second_smallest
+    # the second-smallest difference so far (a 1 × 1 placeholder when it is not wanted)
+    change2 = np.full(depth_p.shape if second else (1, 1), np.inf, dtype=np.float32)
     support = np.zeros(depth_p.shape, dtype=np.uint8)
     for nb in neighbours:
         R_rel = nb.pose.R @ pose_p.R.T  # X_q = R_rel X_p + t_rel (camera frames)
@@ -585,8 +595,12 @@ def raw_change(
             holes.block,
             float(params.occlusion_tolerance_m),
             change,
+            change2,
+            second,
             support,
         )
+    if second:
+        np.copyto(change, change2, where=support >= SECOND_SMALLEST_FROM)
     change[support == 0] = 0.0
     weigh_low_classes(change, classes_p, params)
     return change, support
@@ -622,13 +636,16 @@ def _correlate_into(
     hole_block,
     tol,
     change,
+    change2,
+    second,
     support,
 ):  # pragma: no cover - compiled
     """For every pixel of p with a surface: project its 3D point into q, skip it if outside
     q or occluded there (nearest pixel of q's depth closer by more than ``tol``; in a hole,
     its block's entry of ``hole_minima``, blocks of ``hole_block`` px), else sample
     q's colour envelope (``image_lo``/``image_hi``, :func:`colour_envelope`) bilinearly
-    (edge pixels replicated), and lower ``change`` to the colour's distance from it.
+    (edge pixels replicated), and lower ``change`` to the colour's distance from it (with
+    ``second``, ``change2`` keeps the second-smallest distance; else it is not touched).
     cam = (fx, fy, cx, cy, k1, k2, p1, p2, k3) of q. ``lut`` (256, 3) float32: the
     envelope is uint8 levels, stretched through it as they are read; None: float32."""
     image_q = image_lo
@@ -684,7 +701,11 @@ def _correlate_into(
                 d2 += diff * diff
             d = np.float32(min(1.0, np.sqrt(d2) * scale))
             if d < change[r, c]:
+                if second:
+                    change2[r, c] = change[r, c]
                 change[r, c] = d
+            elif second and d < change2[r, c]:
+                change2[r, c] = d
             support[r, c] += 1
 
 
