@@ -159,6 +159,10 @@ class CorrelateParams:
     # colour tolerance for registration error: p's colour is compared with the range of q's
     # colours within this radius (px at REFERENCE_WIDTH_PX; 0 = the paper's pixel difference)
     registration_tolerance_px: float = 4.0  # tuned, docs/TUNING.md (2 px at 1920 wide)
+    # [ours] ... and never less than this many of the image's own pixels (a pose's error as a
+    # reprojection error, a pixel or two at any resolution); 0 = the scaled radius alone, the
+    # default: 2 quiets every unchanged validation street but loses on the mixed kind
+    registration_floor_px: float = 0.0  # docs/TUNING.md, twenty-second round
     # > 0: pixels within f·m/z px of a nearer surface at depth z are also tested at that
     # depth (the unscanned side of near poles, streetcd.detect.silhouette); 0 = the paper's method
     silhouette_margin_m: float = 0.2  # tuned, docs/TUNING.md
@@ -222,6 +226,12 @@ class CorrelateParams:
             self.registration_tolerance_px >= 0,
             "registration_tolerance_px",
             self.registration_tolerance_px,
+            ">= 0",
+        )
+        _check(
+            self.registration_floor_px >= 0,
+            "registration_floor_px",
+            self.registration_floor_px,
             ">= 0",
         )
 
@@ -659,6 +669,8 @@ class Config:
             del detect["surface"]["spacing_edge_same_role"]
         if not self.detect.correlate.second_smallest:  # eq. 5's minimum: older hashes hold
             del detect["correlate"]["second_smallest"]
+        if not self.detect.correlate.registration_floor_px:  # scaled alone: older hashes hold
+            del detect["correlate"]["registration_floor_px"]
         if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold
             for key in [k for k in detect["correlate"] if k.startswith("nearer")]:
                 del detect["correlate"][key]

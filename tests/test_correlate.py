@@ -17,6 +17,7 @@ from streetcd.detect.correlate import (
     occluder_depth,
     pair_lut,
     raw_change,
+    registration_radius_px,
     reproject,
     robust_line,
     stretch_histogram,
@@ -145,6 +146,16 @@ def test_minimum_over_neighbours_needs_every_neighbour_to_disagree():
     assert np.array_equal(s_both, s_good + s_bad)
     assert np.array_equal(c_both[both], np.minimum(c_good, c_bad)[both])
     assert np.median(c_bad[both]) > 0.5 and np.median(c_both[both]) < 0.02
+
+
+def test_the_registration_radius_scales_with_the_width_and_its_floor_holds_it_up():
+    default = CorrelateParams()
+    assert [registration_radius_px(w, default) for w in (320, 1280, 1920, 4000)] == [0, 1, 2, 4]
+    floored = CorrelateParams(registration_floor_px=2.0)
+    assert [registration_radius_px(w, floored) for w in (320, 1280, 1920, 4000)] == [2, 2, 2, 4]
+    # no tolerance at all stays none, floor or not: the paper's pixel difference
+    off = CorrelateParams(registration_tolerance_px=0.0, registration_floor_px=2.0)
+    assert registration_radius_px(1280, off) == 0
 
 
 def test_second_smallest_needs_two_of_three_neighbours_to_agree():

@@ -144,6 +144,8 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
     blurred = Config(DetectParams(texture=TextureParams(blur_px=1.5)))
     assert blurred.results_hash() not in (base.results_hash(), nearer_on.results_hash())
+    floored = Config(DetectParams(correlate=CorrelateParams(registration_floor_px=2.0)))
+    assert floored.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     log_transfer = Config(DetectParams(appearance=AppearanceParams(transfer="log")))
     assert log_transfer.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     reach_colour = Config(DetectParams(zbuffer=ZBufferParams(reach_colour=True)))

@@ -507,10 +507,13 @@ def color_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def registration_radius_px(width: int, params: CorrelateParams = _DEFAULTS) -> int:
-    """Radius in pixels of the registration tolerance at an image ``width`` px wide."""
+    """Radius in pixels of the registration tolerance at an image ``width`` px wide:
+    ``registration_tolerance_px`` scaled from ``REFERENCE_WIDTH_PX``, but not below
+    ``registration_floor_px`` (0 with no tolerance at all)."""
     if params.registration_tolerance_px <= 0:
         return 0
-    return int(round(scale_px(params.registration_tolerance_px, width, minimum=0.0)))
+    scaled = scale_px(params.registration_tolerance_px, width, minimum=0.0)
+    return int(round(max(scaled, params.registration_floor_px)))
 
 
 def colour_envelope(image: np.ndarray, radius_px: int) -> tuple[np.ndarray, np.ndarray]:
