@@ -122,6 +122,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         _texture,
         _with_near_hypothesis,
         fuse_appearance,
+        gate_second_smallest,
+        reference_kind,
     )
     from streetcd.detect.correlate import stretch_lut
     from streetcd.detect.graphcut import cut_changes, node_energy, superpixels
@@ -176,9 +178,13 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         _neighbour(img, s, loc, surf, local, view_lut, image, params)
         for s, loc, img in surfaces[1:]
     ]
-    change, _ = _raw_change_at_cell_scale(  # as detect_view
-        stretched, surf.depth, surf.classes, local, nbs, params
+    kind = reference_kind(scene.cloud, params) if surf.colour is not None else None
+    gated = kind == "colour" and params.correlate.second_smallest_gate > 0
+    change, _, minimum = _raw_change_at_cell_scale(  # as detect_view
+        stretched, surf.depth, surf.classes, local, nbs, params, keep_minimum=gated
     )
+    if minimum is not None:
+        change = gate_second_smallest(change, minimum, image, surf, local, params)
     if params.correlate.silhouette_margin_m > 0 and nbs:
         change = _with_near_hypothesis(change, stretched, surf, local, nbs, params)
     t1 = time.perf_counter()

@@ -178,6 +178,12 @@ class CorrelateParams:
     # matches by chance, moving along its line of sight or over a plain background, no longer
     # hides what the others see); False = the minimum everywhere (the paper)
     second_smallest: bool = True  # docs/TUNING.md, twenty-first round
+    # [ours] ... but where the cloud has colours, only where the view's colour differs from the
+    # old cloud's (the reference-colour check's distance after its colour transfer, within the
+    # registration radius) by at least this; elsewhere the minimum: the old surface is what the
+    # view shows, and two neighbours that disagree there see something new in front of it
+    # (0 = no gate)
+    second_smallest_gate: float = 0.15  # docs/TUNING.md, twenty-third round
     # our addition (issue 16): the nearer-depth test (streetcd.detect.sweep): the fused change
     # is also max(..., nearer_weight · N_p), N_p how much better a depth in front of the old
     # surface explains the view and its neighbours (added objects); 0 = off, the default: on
@@ -227,6 +233,12 @@ class CorrelateParams:
             "registration_tolerance_px",
             self.registration_tolerance_px,
             ">= 0",
+        )
+        _check(
+            0 <= self.second_smallest_gate <= 1,
+            "second_smallest_gate",
+            self.second_smallest_gate,
+            "in [0, 1]",
         )
         _check(
             self.registration_floor_px >= 0,
@@ -669,6 +681,9 @@ class Config:
             del detect["surface"]["spacing_edge_same_role"]
         if not self.detect.correlate.second_smallest:  # eq. 5's minimum: older hashes hold
             del detect["correlate"]["second_smallest"]
+            del detect["correlate"]["second_smallest_gate"]  # it gates nothing then
+        elif not self.detect.correlate.second_smallest_gate:  # no gate: older hashes hold
+            del detect["correlate"]["second_smallest_gate"]
         if not self.detect.correlate.registration_floor_px:  # scaled alone: older hashes hold
             del detect["correlate"]["registration_floor_px"]
         if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold

@@ -183,7 +183,8 @@ def test_the_second_smallest_difference_marks_the_wall_that_two_neighbours_see_h
     neighbours b and c (x = +1, +2) see the new board in front of the wall just left of it,
     where the view sees the wall; with the minimum, a (x = -1) explains those pixels, with the
     second-smallest it does not. The board is found whole, and the strip beside it is no
-    wider than the board's parallax in b (1 m at 7 m against the wall at 12 m: 17 px)."""
+    wider than the board's parallax in b (1 m at 7 m against the wall at 12 m: 17 px). This
+    cloud has no colours; with them the gate of the next test keeps the minimum there."""
     from dataclasses import replace
 
     board = render(0.0)[1]
@@ -199,6 +200,32 @@ def test_the_second_smallest_difference_marks_the_wall_that_two_neighbours_see_h
     strip = np.zeros_like(board)
     strip[rows[0] : rows[-1] + 1, cols[0] - 17 : cols[0]] = True  # left of the board
     assert outside[~strip].sum() <= 0.05 * outside.sum()
+
+
+def test_where_the_view_shows_the_old_colour_the_minimum_stays(images):
+    """``correlate.second_smallest_gate``: with a cloud coloured as the scanner saw the
+    street, the strip beside the new board shows the wall's old colour, so eq. 5's minimum
+    stays there; the board itself differs from the wall's colour and is found whole."""
+    from dataclasses import replace
+
+    board = render(0.0)[1]
+    bare = make_cloud(board=False)
+    wall = bare.classification == classes.BUILDING
+    rgb = np.zeros((len(bare), 3))
+    rgb[wall] = 90 + 0.3 * cells(bare.xyz[wall], 0.3, 1)  # as render() paints them
+    rgb[~wall] = 60 + 0.25 * cells(bare.xyz[~wall], 0.4, 2)[:, :1]
+    rgb16 = (np.clip(rgb, 0, 255).round() * 257).astype(np.uint16)
+    coloured = PointCloud(bare.xyz, bare.origin, bare.classification, rgb=rgb16)
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    second = replace(PARAMS.correlate, second_smallest=True)
+    outside = {}
+    for gate in (0.0, 0.15):
+        params = replace(PARAMS, correlate=replace(second, second_smallest_gate=gate))
+        result = detect_view(images["p.png"], make_view("p.png"), nbs, coloured, params)
+        assert result.mask[board].mean() > 0.95
+        outside[gate] = (result.mask & ~board).mean()
+    assert outside[0.0] > 0.005  # the strip, without the gate
+    assert outside[0.15] < 0.001
 
 
 def test_the_unscanned_half_of_a_near_object_is_not_a_change(images):

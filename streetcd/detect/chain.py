@@ -30,7 +30,13 @@ import cv2
 import numpy as np
 
 from streetcd.config import DetectParams, scale_px
-from streetcd.detect.appearance import appearance_change, close_width_px, footprint
+from streetcd.detect.appearance import (
+    appearance_change,
+    close_width_px,
+    colour_distance,
+    footprint,
+    transfer_luts,
+)
 from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
 from streetcd.detect.correlate import (
     Neighbour,
@@ -240,14 +246,17 @@ def detect_view(
         lap("stretch")
     stretched = cv2.LUT(np.ascontiguousarray(image), view_lut)  # = stretch_histogram(image)
     lap("stretch")
-    change, support = _raw_change_at_cell_scale(
-        stretched, surf.depth, surf.classes, local, used, params
+    kind = reference_kind(cloud, params, surfaces) if surf.colour is not None else None
+    gated = kind == "colour" and params.correlate.second_smallest_gate > 0
+    change, support, minimum = _raw_change_at_cell_scale(
+        stretched, surf.depth, surf.classes, local, used, params, keep_minimum=gated
     )
+    if minimum is not None:
+        change = gate_second_smallest(change, minimum, image, surf, local, params)
     if params.correlate.silhouette_margin_m > 0 and used:
         change = _with_near_hypothesis(change, stretched, surf, local, used, params)
     used.clear()  # their envelopes and depths (360 MB at 12 MP) are not needed past eq. 5
     lap("raw_change")
-    kind = reference_kind(cloud, params, surfaces) if surf.colour is not None else None
     if params.appearance.enabled and kind != "colour":
         _tell_no_colours(surfaces, kind)
     fused, appearance = fuse_appearance(image, surf, change, local, params, kind or "colour")
@@ -527,6 +536,39 @@ def _tell_no_colours(cache: SurfaceCache | None, kind: str | None = None) -> Non
         )
 
 
+def gate_second_smallest(
+    change: np.ndarray,
+    minimum: np.ndarray,
+    image: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    params: DetectParams,
+) -> np.ndarray:
+    """``change`` (H, W) float32, eq. 5's second-smallest difference, with eq. 5's
+    ``minimum`` (H, W) float32 put back wherever the view ``image`` (H, W, 3) uint8 shows the
+    old cloud's colour (``surf.colour``, moved onto the image by the reference-colour check's
+    transfer) within the registration radius: the distance of
+    :func:`streetcd.detect.appearance.colour_distance` below
+    ``params.correlate.second_smallest_gate``. There the old surface is what the view shows,
+    and neighbours that disagree see something new standing in front of it. Only the pixels
+    where the two differ are looked at."""
+    differ = change > minimum
+    if not differ.any() or surf.colour is None:
+        return change
+    radius = registration_radius_px(local.intrinsics.width, params.correlate)
+    square = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    near = (cv2.dilate(differ.astype(np.uint8), square) > 0) & surf.valid if radius else differ
+    ap = params.appearance
+    luts = transfer_luts(surf.colour, image, surf.valid, ap.transfer)
+    reference = surf.colour[near]  # (N, 3) where the test is needed
+    mapped = np.stack([luts[c][reference[:, c]] for c in range(3)], axis=-1)
+    same = np.zeros(differ.shape, np.uint8)
+    same[near] = colour_distance(image[near], mapped, ap) < params.correlate.second_smallest_gate
+    held = cv2.dilate(same, square) if radius else same  # within the registration radius
+    keep = differ & (held > 0) & surf.valid
+    return np.where(keep, minimum, change).astype(np.float32)
+
+
 def _raw_change_at_cell_scale(
     stretched: np.ndarray,
     depth: np.ndarray,
@@ -534,10 +576,12 @@ def _raw_change_at_cell_scale(
     local: View,
     used: Sequence[Neighbour],
     params: DetectParams,
-) -> tuple[np.ndarray, np.ndarray]:
+    keep_minimum: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Raw change (eq. 5) of the view's (H, W) ``depth`` and ``classes`` rasters (its
     surface, or a second depth hypothesis), computed at a resolution where a superpixel cell
-    is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear).
+    is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear); with ``keep_minimum`` (and
+    ``correlate.second_smallest``), eq. 5's minimum beside it, else None.
 
     The graph cut only sees the raw change averaged over superpixels, so sampling it 4 times
     more coarsely on a 12 MP view changes little and saves most of its cost (docs/BENCHMARKS.md); a 2 MP view
@@ -549,8 +593,13 @@ def _raw_change_at_cell_scale(
     scale = min(1.0, CHANGE_CELL_PX / cell)
     intr = local.intrinsics
     hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
+    keep = keep_minimum and params.correlate.second_smallest
+    minimum = np.empty((hs, ws), np.float32) if keep else None
     if (hs, ws) == (h, w):
-        return raw_change(stretched, depth, classes, intr, local.pose, used, params.correlate)
+        change, support = raw_change(
+            stretched, depth, classes, intr, local.pose, used, params.correlate, minimum
+        )
+        return change, support, minimum
     sx, sy = ws / w, hs / h
     small = Intrinsics(
         ws,
@@ -571,10 +620,12 @@ def _raw_change_at_cell_scale(
         local.pose,
         used,
         params.correlate,
+        minimum,
     )
     return (
         cv2.resize(change, (w, h), interpolation=cv2.INTER_LINEAR),
         cv2.resize(support, (w, h), interpolation=cv2.INTER_NEAREST),
+        None if minimum is None else cv2.resize(minimum, (w, h), interpolation=cv2.INTER_LINEAR),
     )
 
 
@@ -598,7 +649,7 @@ def _with_near_hypothesis(
     )
     if not np.isfinite(near).any():
         return change
-    near_change, near_support = _raw_change_at_cell_scale(
+    near_change, near_support, _ = _raw_change_at_cell_scale(
         stretched, near, surf.classes, local, used, params
     )
     # a pixel that may be the unscanned side of a near object and that no neighbour can

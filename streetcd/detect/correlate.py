@@ -542,6 +542,7 @@ def raw_change(
     pose_p: Pose,
     neighbours: Sequence[Neighbour],
     params: CorrelateParams = _DEFAULTS,
+    minimum_out: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Raw change ``C_p`` of eq. 5 for view ``p``.
 
@@ -555,7 +556,8 @@ def raw_change(
     ``change`` is eq. 5's minimum of the neighbours' differences, or with
     ``params.second_smallest`` their second-smallest where ``SECOND_SMALLEST_FROM`` or more
     neighbours see the pixel (our addition: one neighbour that matches by chance does not
-    decide alone).
+    decide alone). ``minimum_out`` (H, W) float32, if given with ``params.second_smallest``,
+    receives eq. 5's minimum, weighted and zeroed as ``change`` is.
 
     One fused pass per neighbour (:func:`_correlate_into`, numba) does what
     :func:`warp_neighbour` and :func:`color_distance` do, without the ten full-size
@@ -603,6 +605,10 @@ def raw_change(
             support,
         )
     if second:
+        if minimum_out is not None:
+            np.copyto(minimum_out, change)
+            minimum_out[support == 0] = 0.0
+            weigh_low_classes(minimum_out, classes_p, params)
         np.copyto(change, change2, where=support >= SECOND_SMALLEST_FROM)
     change[support == 0] = 0.0
     weigh_low_classes(change, classes_p, params)
