@@ -121,6 +121,18 @@ def colour_distance(
     return np.clip(a, 0.0, 1.0).astype(np.float32)
 
 
+def reference_distance(
+    image_px: np.ndarray,
+    reference_px: np.ndarray,
+    luts: np.ndarray,
+    params: AppearanceParams = _DEFAULTS,
+) -> np.ndarray:
+    """:func:`colour_distance` of image colours (N, 3) uint8 from reference colours (N, 3)
+    uint8 moved through the transfer tables ``luts`` (3, 256) of :func:`transfer_luts`."""
+    mapped = np.stack([luts[c][reference_px[:, c]] for c in range(3)], axis=-1)
+    return colour_distance(image_px, mapped, params)
+
+
 def footprint(
     classes: np.ndarray,
     checked_classes: tuple[int, ...],
@@ -252,8 +264,7 @@ def appearance_change(
         return out
     luts = transfer_luts(reference, image, valid, params.transfer)
     ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
-    mapped = np.stack([luts[c][ref[:, c]] for c in range(3)], axis=-1)
-    out[checked] = colour_distance(image[checked], mapped, params)
+    out[checked] = reference_distance(image[checked], ref, luts, params)
     if registration_px > 0:
         square = np.ones((2 * registration_px + 1, 2 * registration_px + 1), np.uint8)
         return np.asarray(cv2.morphologyEx(out, cv2.MORPH_OPEN, square), dtype=np.float32)

@@ -33,8 +33,8 @@ from streetcd.config import DetectParams, scale_px
 from streetcd.detect.appearance import (
     appearance_change,
     close_width_px,
-    colour_distance,
     footprint,
+    reference_distance,
     transfer_luts,
 )
 from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
@@ -548,7 +548,7 @@ def gate_second_smallest(
     ``minimum`` (H, W) float32 put back wherever the view ``image`` (H, W, 3) uint8 shows the
     old cloud's colour (``surf.colour``, moved onto the image by the reference-colour check's
     transfer) within the registration radius: the distance of
-    :func:`streetcd.detect.appearance.colour_distance` below
+    :func:`streetcd.detect.appearance.reference_distance` below
     ``params.correlate.second_smallest_gate``. There the old surface is what the view shows,
     and neighbours that disagree see something new standing in front of it. Only the pixels
     where the two differ are looked at."""
@@ -560,10 +560,9 @@ def gate_second_smallest(
     near = (cv2.dilate(differ.astype(np.uint8), square) > 0) & surf.valid if radius else differ
     ap = params.appearance
     luts = transfer_luts(surf.colour, image, surf.valid, ap.transfer)
-    reference = surf.colour[near]  # (N, 3) where the test is needed
-    mapped = np.stack([luts[c][reference[:, c]] for c in range(3)], axis=-1)
+    distance = reference_distance(image[near], surf.colour[near], luts, ap)
     same = np.zeros(differ.shape, np.uint8)
-    same[near] = colour_distance(image[near], mapped, ap) < params.correlate.second_smallest_gate
+    same[near] = distance < params.correlate.second_smallest_gate
     held = cv2.dilate(same, square) if radius else same  # within the registration radius
     keep = differ & (held > 0) & surf.valid
     return np.where(keep, minimum, change).astype(np.float32)
