@@ -682,3 +682,38 @@ def test_the_nearer_depth_test_is_wired_as_one_more_cue_and_leaves_an_unchanged_
     assert added.mask[board].mean() > 0.75 and added.mask[~board].mean() < 0.005
     unchanged = detect_view(images["p.png"], view, nbs, make_cloud(board=True), on)
     assert not unchanged.mask.any()
+
+
+def test_the_per_view_benchmark_times_the_steps_detect_view_runs(images):
+    """benchmarks/per_view.py calls the chain's private steps one by one to time them: a
+    change of their signatures must fail here, not in the next benchmark run. Its import
+    settings (one thread for numba, BLAS and OpenCV) are put back afterwards."""
+    import importlib.util
+    import os
+    from types import SimpleNamespace
+
+    saved_env = {
+        k: os.environ.get(k)
+        for k in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    }
+    threads = cv2.getNumThreads()
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "per_view.py"
+    spec = importlib.util.spec_from_file_location("per_view_under_test", path)
+    assert spec is not None and spec.loader is not None
+    per_view = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(per_view)
+    finally:
+        cv2.setNumThreads(threads)
+        for key, value in saved_env.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+    nbs = [(images[n], make_view(n)) for n in ("a.png", "b.png", "c.png")]
+    scene = SimpleNamespace(cloud=with_colours(make_cloud(board=False)))
+    # the defaults' eq. 5 (the second-smallest and its colour gate), as the benchmark runs it
+    params = dataclasses.replace(PARAMS, correlate=CorrelateParams())
+    times = per_view.steps_once(scene, params, make_view("p.png"), images["p.png"], nbs)
+    assert set(per_view.STEPS[: per_view.N_STEPS]) <= set(times)
+    assert times["sum_of_steps"] > 0
