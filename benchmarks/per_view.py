@@ -118,6 +118,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     metric z-buffer of surface_for_view, the neighbours' uint8 colour envelopes)."""
     from streetcd.detect.chain import (
         _neighbour,
+        _outline_grey,
         _raw_change_at_cell_scale,
         _texture,
         _with_near_hypothesis,
@@ -186,7 +187,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     if minimum is not None:
         change = gate_second_smallest(change, minimum, image, surf, local, params)
     if params.correlate.silhouette_margin_m > 0 and nbs:
-        change = _with_near_hypothesis(change, stretched, surf, local, nbs, params)
+        grey = _outline_grey(image, view_lut, params)
+        change = _with_near_hypothesis(change, stretched, surf, local, nbs, params, grey)
     t1 = time.perf_counter()
     labels = superpixels(stretched, surf.classes, params.graphcut)
     t2 = time.perf_counter()

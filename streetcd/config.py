@@ -166,6 +166,11 @@ class CorrelateParams:
     # > 0: pixels within f·m/z px of a nearer surface at depth z are also tested at that
     # depth (the unscanned side of near poles, streetcd.detect.silhouette); 0 = the paper's method
     silhouette_margin_m: float = 0.2  # tuned, docs/TUNING.md
+    # [ours] > 0: that band ends at the near object's outline in the view (no edge of the
+    # view's grey levels, Canny with this upper threshold and half of it as the lower, between
+    # a pixel and the near surface): a new pole standing beside a near column keeps its
+    # evidence; 0 = the reach alone
+    silhouette_edge_threshold: float = 120.0  # docs/TUNING.md, twenty-fourth round
     # True: each neighbour's levels are fitted to the view's on the pixels they share
     # (streetcd.detect.correlate.pair_lut); False: each image stretched on its own (the paper)
     pair_gain: bool = True
@@ -212,6 +217,12 @@ class CorrelateParams:
         _check(0 < self.nearer_scale <= 1, "nearer_scale", self.nearer_scale, "in (0, 1]")
         _check(self.min_parallax_px >= 0, "min_parallax_px", self.min_parallax_px, ">= 0")
         _check(self.occluder_fill_px >= 0, "occluder_fill_px", self.occluder_fill_px, ">= 0")
+        _check(
+            math.isfinite(self.silhouette_edge_threshold) and self.silhouette_edge_threshold >= 0,
+            "silhouette_edge_threshold",
+            self.silhouette_edge_threshold,
+            "a finite number >= 0",
+        )
         lo, hi = self.stretch_percentiles
         _check(
             0 <= lo < hi <= 100,
@@ -686,6 +697,9 @@ class Config:
             del detect["correlate"]["second_smallest_gate"]
         if not self.detect.correlate.registration_floor_px:  # scaled alone: older hashes hold
             del detect["correlate"]["registration_floor_px"]
+        correlate = self.detect.correlate
+        if not correlate.silhouette_edge_threshold or not correlate.silhouette_margin_m:
+            del detect["correlate"]["silhouette_edge_threshold"]  # the reach alone: older hold
         if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold
             for key in [k for k in detect["correlate"] if k.startswith("nearer")]:
                 del detect["correlate"][key]
