@@ -182,8 +182,8 @@ def _within_outline(
     nor takes one (an edge one pixel wide closes its whole block). A block keeps its
     hypothesis where a depth within ``min_gap_m`` of it has reached it: the near surface
     itself, from inside the outline that holds both. A near object so thin that all its
-    blocks hold edges keeps no band (tried: such blocks passing their own depth on; it
-    changed nothing measured, docs/TUNING.md).
+    blocks hold edges keeps no band (letting such blocks pass their own depth on was tried
+    on one full-size street's views only, where it changed nothing; not kept).
     """
     edges = cv2.Canny(grey, edge_threshold / 2, edge_threshold)
     closed = _block_max(edges, k) > 0
