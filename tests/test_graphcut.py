@@ -116,6 +116,22 @@ def test_speckle_filter_removes_exactly_the_components_below_the_threshold():
     assert np.array_equal(speckle_filter(mask, 3), only_single)  # the 3 px diagonal stays
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_speckle_filter_agrees_with_scipys_labelling(seed):
+    # the filter labels only the segments' bounding box: the same segments as the whole image
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    mask = np.zeros((60, 80), bool)
+    mask[7:50, 11:71] = rng.random((43, 60)) < 0.45
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3)))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    keep = sizes >= 5
+    keep[0] = False
+    assert np.array_equal(speckle_filter(mask, 5), keep[labels])
+    assert not speckle_filter(np.zeros_like(mask), 5).any()
+
+
 def test_speckle_area_scales_with_the_square_of_the_width():
     p = GraphCutParams(speckle_min_px=200)
     assert speckle_min_px(4000, p) == 200

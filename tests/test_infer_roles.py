@@ -17,6 +17,7 @@ from streetcd.detect.roles import (
     _code_counts,
     _table,
     cloud_roles,
+    in_roles,
     infers,
     role_codes,
 )
@@ -279,3 +280,12 @@ def test_the_results_hash_changes_with_the_switch_and_off_keeps_the_old_one():
     always = Config(DetectParams(classes=ClassMap(infer="always")))
     assert len({Config().results_hash(), off.results_hash(), always.results_hash()}) == 3
     assert off.detect.classes.table() == ClassMap().table()
+
+
+@pytest.mark.parametrize("codes", [(), (2,), (6, 64, 65, 66, 67), tuple(range(256))])
+def test_in_roles_is_numpys_isin(codes):
+    raster = np.random.default_rng(7).integers(0, 256, (37, 53), dtype=np.uint8)
+    got = in_roles(raster, codes)
+    assert got.dtype == bool and got.shape == raster.shape
+    assert np.array_equal(got, np.isin(raster, codes))
+    assert in_roles(raster[:0], codes).shape == (0, 53)

@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from streetcd.config import AppearanceParams, scale_px
+from streetcd.detect.roles import in_roles
 from streetcd.errors import InputError
 
 _DEFAULTS = AppearanceParams()
@@ -149,7 +150,7 @@ def footprint(
     between a railing's thin bars and the wall behind them, so a railing is mostly holes
     with a few pixels of its class, and gaps wider than the disc would stay open.
     """
-    mask = np.isin(classes, checked_classes)
+    mask = in_roles(classes, checked_classes)
     if close_px <= 1 or not mask.any():
         return mask
     # OpenCV's closing with a full-resolution disc is slow at 12 MP; on a grid of f × f blocks
@@ -258,7 +259,7 @@ def appearance_change(
         else None
     )
     if checked is None:
-        checked = valid & np.isin(classes, params.classes)
+        checked = valid & in_roles(classes, params.classes)
     out = np.zeros(valid.shape, dtype=np.float32)
     if not checked.any() or not valid.any():
         return out

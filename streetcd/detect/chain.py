@@ -59,7 +59,7 @@ from streetcd.detect.graphcut import (
 from streetcd.detect.intensity import intensity_change, intensity_codes
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions
-from streetcd.detect.roles import cloud_roles, mostly_roleless, useless_classes
+from streetcd.detect.roles import cloud_roles, in_roles, mostly_roleless, useless_classes
 from streetcd.detect.seethrough import see_through_change
 from streetcd.detect.silhouette import GROUND_ROLES, near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
@@ -403,7 +403,7 @@ def _texture(
     seen = [(grey_u8(img), depth, intr, pose, holes) for img, depth, intr, pose, holes in seen]
     where = None
     if tp.classes:
-        where = np.isin(surf.classes, np.asarray(tp.classes, dtype=np.uint8))
+        where = in_roles(surf.classes, tp.classes)
     texture, _ = texture_change(
         image,
         surf.depth,
@@ -434,7 +434,7 @@ def _see_through(
     (:func:`streetcd.detect.appearance.footprint`: a railing's bars, gaps and holes)."""
     tp, ap = params.texture, params.appearance
     close_px = close_width_px(ap, surf.valid.shape[1])
-    own = surf.valid & np.isin(surf.classes, np.asarray(tp.see_through_classes, np.uint8))
+    own = surf.valid & in_roles(surf.classes, tp.see_through_classes)
     inside = footprint(surf.classes, tp.see_through_classes, close_px, ~surf.valid, ap.hole_reach)
     return see_through_change(
         image,

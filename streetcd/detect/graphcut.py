@@ -429,12 +429,22 @@ def speckle_filter(mask: np.ndarray, min_px: float) -> np.ndarray:
 
     mask : (H, W) bool. Returns a new (H, W) bool; segments of exactly ``min_px`` stay.
     """
-    if min_px <= 1 or not mask.any():
+    if min_px <= 1:
         return mask.copy()
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return mask.copy()
+    # labelled within the segments' bounding box: a view's changes cover a few per cent of
+    # it, and labelling the whole image (int32 labels, 11 ms at 2 MP) was most of the cost
+    box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        np.ascontiguousarray(mask[box], np.uint8), connectivity=8
+    )
     keep = stats[:, cv2.CC_STAT_AREA] >= min_px
     keep[0] = False  # background
-    return keep[labels]
+    out = np.zeros_like(mask, dtype=bool)
+    out[box] = keep[labels]
+    return out
 
 
 def speckle_min_px(width: int, params: GraphCutParams) -> float:

@@ -45,6 +45,7 @@ from scipy import ndimage
 
 from streetcd.config import AppearanceParams, scale_px
 from streetcd.detect.appearance import close_width_px, footprint
+from streetcd.detect.roles import in_roles
 
 _DEFAULTS = AppearanceParams()
 # Intensity is laid out by the surface rasteriser like 8-bit colours: ln(1 + i) of the
@@ -122,7 +123,7 @@ def intensity_change(
     in [0, 1], 0 off the inventory pixels that have a surface.
     """
     out = np.zeros(valid.shape, dtype=np.float32)
-    checked = np.isin(classes, params.classes)
+    checked = in_roles(classes, params.classes)
     objects = checked & valid
     if not objects.any():
         return out

@@ -16,6 +16,7 @@ import functools
 import logging
 import time
 import weakref
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -44,6 +45,19 @@ MIN_USEFUL_SHARE = 0.01
 # like an unclassified one (its ground keeps the low weight of eq. 5; docs/TUNING.md,
 # sixteenth round).
 MAX_ROLELESS_SHARE = 0.5
+
+
+def in_roles(raster: np.ndarray, codes: Sequence[int]) -> np.ndarray:
+    """(H, W) bool: the pixels of the (H, W) uint8 role raster whose code is in ``codes``.
+
+    The same as ``np.isin(raster, codes)`` through one 256-entry look-up table (OpenCV's):
+    np.isin sorts and searches, ~1 ms per call at 2 MP, and a view asks this five times."""
+    table = np.zeros(256, np.uint8)
+    table[np.asarray(codes, np.int64)] = 1
+    raster = np.ascontiguousarray(raster, np.uint8)
+    if raster.size == 0:  # OpenCV returns None for an empty array
+        return np.zeros(raster.shape, bool)
+    return cv2.LUT(raster, table).view(bool)
 
 
 @functools.lru_cache(maxsize=8)

@@ -138,12 +138,17 @@ def blur_groups(
     whose blur ``σ = blur_m · focal_px / z`` (``z`` the median ``depth`` (H, W) float32 metres of
     the piece's ``own`` pixels) lies within one ``BLUR_STEP`` bin; pieces without an own pixel
     are left out."""
-    n, labels = cv2.connectedComponents(inside.view(np.uint8), connectivity=8)
+    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    if rows.size == 0:
+        return
+    # labelled within the footprint's bounding box (a railing's strip, not the whole image)
+    box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    n, labels = cv2.connectedComponents(np.ascontiguousarray(inside[box], np.uint8), connectivity=8)
     if n <= 1:
         return
-    has = own & np.isfinite(depth)
+    has = own[box] & np.isfinite(depth[box])
     lab = labels[has]
-    z = depth[has]
+    z = depth[box][has]
     bins: dict[int, list[int]] = {}
     sigmas: dict[int, float] = {}
     for k in np.unique(lab):
@@ -152,4 +157,8 @@ def blur_groups(
         bins.setdefault(b, []).append(int(k))
         sigmas[b] = BLUR_STEP**b if blur_m > 0 else 0.0
     for b, members in sorted(bins.items()):
-        yield sigmas[b], np.isin(labels, members)
+        chosen = np.zeros(n, bool)
+        chosen[members] = True
+        where = np.zeros(inside.shape, bool)
+        where[box] = chosen[labels]
+        yield sigmas[b], where
