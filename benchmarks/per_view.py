@@ -10,8 +10,9 @@ warm-up (numba compilation, caches), and the median of every step is printed:
 
 * project + z-buffer (eq. 1–3) and surface (triangulation, rasters) for the view and its
   3 neighbours, as :func:`streetcd.detect.chain.detect_view` does them;
-* correlate: histogram stretching of the view, the neighbours' colour envelopes and the
-  raw change (eq. 4–5), with the pairwise levels and the near-depth hypothesis (:mod:`streetcd.detect.silhouette`);
+* correlate: histogram stretching of the view, the neighbours' colour envelopes, their
+  registration shifts (:mod:`streetcd.detect.align`) and the raw change (eq. 4–5), with the
+  pairwise levels and the near-depth hypothesis (:mod:`streetcd.detect.silhouette`);
 * appearance: the reference-colour check (:mod:`streetcd.detect.appearance`);
 * texture: the texture cue (:mod:`streetcd.detect.texture`), when ``texture.enabled``;
 * superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
@@ -117,6 +118,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     """One detection split into the paper's steps (the same calls as detect_view: the
     metric z-buffer of surface_for_view, the neighbours' uint8 colour envelopes)."""
     from streetcd.detect.chain import (
+        _aligned,
+        _greys,
         _neighbour,
         _outline_grey,
         _raw_change_at_cell_scale,
@@ -179,6 +182,14 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         _neighbour(img, s, loc, surf, local, view_lut, image, params)
         for s, loc, img in surfaces[1:]
     ]
+    seen = [
+        (img, s.depth, loc.intrinsics, loc.pose, nb.holes)
+        for (s, loc, img), nb in zip(surfaces[1:], nbs, strict=True)
+    ]
+    greys = _greys(image, seen) if nbs else None
+    warps = None
+    if params.correlate.align_shift_px > 0 and greys is not None:
+        nbs, warps = _aligned(nbs, greys, surf, local, params)  # the registration shifts
     kind = reference_kind(scene.cloud, params) if surf.colour is not None else None
     gated = kind == "colour" and params.correlate.second_smallest_gate > 0
     change, _, minimum = _raw_change_at_cell_scale(  # as detect_view
@@ -194,12 +205,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     t2 = time.perf_counter()
     change, _ = fuse_appearance(image, surf, change, local, params)
     t3 = time.perf_counter()
-    if params.texture.enabled and nbs:
-        seen = [
-            (img, s.depth, loc.intrinsics, loc.pose, nb.holes)
-            for (s, loc, img), nb in zip(surfaces[1:], nbs, strict=True)
-        ]
-        texture = _texture(image, surf, local, seen, params)
+    if params.texture.enabled and greys is not None:
+        texture = _texture(*greys, surf, local, params, warps)
         change = np.maximum(change, np.float32(params.texture.weight) * texture)
     t4 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)

@@ -171,6 +171,12 @@ class CorrelateParams:
     # a pixel and the near surface): a new pole standing beside a near column keeps its
     # evidence; 0 = the reach alone
     silhouette_edge_threshold: float = 120.0  # docs/TUNING.md, twenty-fourth round
+    # [ours] each neighbour is registered to the view by the whole-image shift, up to this
+    # (px at REFERENCE_WIDTH_PX), that best correlates it, warped through the old surface,
+    # with the view (streetcd.detect.align); 0 = the poses as given (the paper)
+    align_shift_px: float = 32.0  # docs/TUNING.md, twenty-fifth round
+    # [ours] ... kept only where it correlates better than no shift by this much
+    align_min_gain: float = 0.05
     # True: each neighbour's levels are fitted to the view's on the pixels they share
     # (streetcd.detect.correlate.pair_lut); False: each image stretched on its own (the paper)
     pair_gain: bool = True
@@ -251,6 +257,8 @@ class CorrelateParams:
             self.second_smallest_gate,
             "in [0, 1]",
         )
+        _check(self.align_shift_px >= 0, "align_shift_px", self.align_shift_px, ">= 0")
+        _check(-1 <= self.align_min_gain <= 2, "align_min_gain", self.align_min_gain, "in [-1, 2]")
         _check(
             self.registration_floor_px >= 0,
             "registration_floor_px",
@@ -695,6 +703,9 @@ class Config:
             del detect["correlate"]["second_smallest_gate"]  # it gates nothing then
         elif not self.detect.correlate.second_smallest_gate:  # no gate: older hashes hold
             del detect["correlate"]["second_smallest_gate"]
+        if not self.detect.correlate.align_shift_px:  # the poses as given: older hashes hold
+            del detect["correlate"]["align_shift_px"]
+            del detect["correlate"]["align_min_gain"]
         if not self.detect.correlate.registration_floor_px:  # scaled alone: older hashes hold
             del detect["correlate"]["registration_floor_px"]
         correlate = self.detect.correlate

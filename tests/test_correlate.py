@@ -424,3 +424,28 @@ def test_a_wall_behind_a_near_poles_holes_gives_no_evidence_from_that_neighbour(
     filled = Neighbour(holes.image, occluder_depth(depth_q, 6), INTR, wall_pose(0.6))
     want, want_support = raw_change(*args, [filled])
     assert np.array_equal(change, want) and np.array_equal(support, want_support)
+
+
+def test_the_compiled_pinhole_reprojection_is_numpys_to_the_bit():
+    from streetcd.detect.correlate import camera_rays, reproject
+    from streetcd.types import Pose
+
+    rng = np.random.default_rng(0)
+    intr = Intrinsics(64, 36, 50.0, 50.5, 31.5, 17.5)
+    depth = rng.uniform(0.5, 60, (36, 64)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = np.nan
+    rot, _ = cv2.Rodrigues(rng.normal(0, 0.3, 3))
+    pose_p, pose_q = Pose(np.eye(3), np.zeros(3)), Pose.from_center(rot, rng.normal(0, 2, 3))
+    rays = camera_rays(intr)
+    got = reproject(depth, rays, pose_p, intr, pose_q)
+    # numpy's float32 operations, as reproject computes them for a distorted camera
+    r = (pose_q.R @ pose_p.R.T).astype(np.float32)
+    t = (pose_q.t - pose_q.R @ pose_p.R.T @ pose_p.t).astype(np.float32)
+    x, y = rays[..., 0] * depth, rays[..., 1] * depth
+    xq, yq, zq = (r[i, 0] * x + r[i, 1] * y + r[i, 2] * depth + t[i] for i in range(3))
+    zq[~(zq > 1e-3)] = np.nan
+    u = (np.float32(intr.fx) * (xq / zq) + np.float32(intr.cx)).astype(np.float32)
+    v = (np.float32(intr.fy) * (yq / zq) + np.float32(intr.cy)).astype(np.float32)
+    for a, b in zip(got, (u, v, zq), strict=True):
+        assert a.dtype == np.float32 and np.array_equal(a, b, equal_nan=True)
+    assert np.isnan(got[0]).any() and np.isfinite(got[0]).any()

@@ -122,7 +122,9 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
     # so it must come from a change of the results (2026-11-29, twenty-fourth round: the
-    # near-depth band ends at the near object's outline in the view; 029b331307b07b3f before,
+    # near-depth band ends at the near object's outline in the view, and from the twenty-fifth
+    # round each neighbour's registration shift (27e71fcf2b40181e without it); 029b331307b07b3f
+    # before,
     # from the twenty-third round: the
     # second-smallest difference only where the view does not show the old colour;
     # 1be77a783281f300 before, from the twenty-first round: eq. 5's
@@ -135,8 +137,11 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # railing's foot; b391d095e4e6e3b2 before that, from the sixteenth round: the rules of the
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "27e71fcf2b40181e"
-    reach_only = CorrelateParams(silhouette_edge_threshold=0.0)
+    assert base.results_hash() == "5f58a3c42a72f9a6"
+    # the twenty-fifth round's registration shifts off: the twenty-fourth round's hash holds
+    unaligned = CorrelateParams(align_shift_px=0.0)
+    assert Config(DetectParams(correlate=unaligned)).results_hash() == "27e71fcf2b40181e"
+    reach_only = CorrelateParams(silhouette_edge_threshold=0.0, align_shift_px=0.0)
     assert Config(DetectParams(correlate=reach_only)).results_hash() == "029b331307b07b3f"
     no_band = CorrelateParams(silhouette_margin_m=0.0)  # then the outline changes nothing
     assert (
@@ -146,17 +151,24 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         ).results_hash()
     )
     # the earlier rounds' hashes hold with the band as they had it (its reach alone)
-    ungated = CorrelateParams(second_smallest_gate=0.0, silhouette_edge_threshold=0.0)
+    ungated = CorrelateParams(
+        second_smallest_gate=0.0, silhouette_edge_threshold=0.0, align_shift_px=0.0
+    )
     assert Config(DetectParams(correlate=ungated)).results_hash() == "1be77a783281f300"
     # eq. 5's minimum everywhere (the paper): the nineteenth round's hash holds
-    minimum = CorrelateParams(second_smallest=False, silhouette_edge_threshold=0.0)
+    minimum = CorrelateParams(
+        second_smallest=False, silhouette_edge_threshold=0.0, align_shift_px=0.0
+    )
     assert Config(DetectParams(correlate=minimum)).results_hash() == "0068d660689c1b69"
     see_through_off = TextureParams(see_through_classes=())
     nineteenth_off = DetectParams(correlate=minimum, texture=see_through_off)
     assert Config(nineteenth_off).results_hash() == "d6f5f4c2c16f882a"
     # a switch added off keeps the hash; on, it changes it
     nearer = CorrelateParams(
-        nearer_weight=1.0, second_smallest=False, silhouette_edge_threshold=0.0
+        nearer_weight=1.0,
+        second_smallest=False,
+        silhouette_edge_threshold=0.0,
+        align_shift_px=0.0,
     )
     nearer_on = Config(DetectParams(correlate=nearer))
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"

@@ -4,7 +4,8 @@
 
 1. surface of the view and of each neighbour from the reference cloud (z-buffer eq. 1–3,
    view-dependent triangulation; :func:`streetcd.detect.surface.surface_for_view`);
-2. histogram stretching of every image and the raw change ``C_p`` (eq. 4–5,
+2. histogram stretching of every image, each neighbour's registration shift against the view
+   (not in the paper; :mod:`streetcd.detect.align`) and the raw change ``C_p`` (eq. 4–5,
    :mod:`streetcd.detect.correlate`), fused with the reference-colour check ``A_p`` (not in the
    paper; :mod:`streetcd.detect.appearance`) as ``max(C_p, k · A_p)``;
 3. node energy (eq. 7), class-aware superpixels (eq. 10–11), graph cut (eq. 6, 8–9) and
@@ -24,12 +25,13 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
 from streetcd.config import DetectParams, scale_px
+from streetcd.detect.align import neighbour_shifts
 from streetcd.detect.appearance import (
     appearance_change,
     close_width_px,
@@ -246,6 +248,14 @@ def detect_view(
         lap("stretch")
     stretched = cv2.LUT(np.ascontiguousarray(image), view_lut)  # = stretch_histogram(image)
     lap("stretch")
+    # grey levels once per image (uint8): the alignment and the texture cue read them
+    greys = None
+    if used and (params.correlate.align_shift_px > 0 or params.texture.enabled):
+        greys = _greys(image, seen)
+    warps = None  # the neighbours warped at the texture cue's size, made by the alignment
+    if params.correlate.align_shift_px > 0 and greys is not None:
+        used, warps = _aligned(used, greys, surf, local, params)
+        lap("align")
     kind = reference_kind(cloud, params, surfaces) if surf.colour is not None else None
     gated = kind == "colour" and params.correlate.second_smallest_gate > 0
     change, support, minimum = _raw_change_at_cell_scale(
@@ -264,8 +274,8 @@ def detect_view(
     if appearance is not None:
         lap("appearance")
     texture = None
-    if params.texture.enabled and seen:
-        texture = _texture(image, surf, local, seen, params)
+    if params.texture.enabled and greys is not None:
+        texture = _texture(*greys, surf, local, params, warps)
         fused = np.maximum(fused, np.float32(params.texture.weight) * texture)
         lap("texture")
     if params.correlate.nearer_weight > 0 and len(seen) >= 2:
@@ -386,21 +396,57 @@ def _neighbour(
     )
 
 
-def _texture(
-    image: np.ndarray,
+def _greys(
+    image: np.ndarray, seen: Sequence[NeighbourView]
+) -> tuple[np.ndarray, list[NeighbourView]]:
+    """The view's and its neighbours' grey levels (uint8, a quarter of float32's memory), the
+    neighbours as (grey, depth, intrinsics, pose, holes)."""
+    return grey_u8(image), [(grey_u8(i), d, intr, pose, h) for i, d, intr, pose, h in seen]
+
+
+def _aligned(
+    used: Sequence[Neighbour],
+    greys: tuple[np.ndarray, Sequence[NeighbourView]],
     surf: ViewSurface,
     local: View,
-    seen: Sequence[NeighbourView],
     params: DetectParams,
+) -> tuple[list[Neighbour], list[tuple[np.ndarray, np.ndarray]]]:
+    """The neighbours of eq. 5 with their registration shifts against the view
+    (:mod:`streetcd.detect.align`, measured away from the texture cue's classes), and the
+    warps it made, which the texture cue reuses."""
+    grey, seen = greys
+    tp, cp = params.texture, params.correlate
+    where = in_roles(surf.classes, tp.classes) if tp.classes else None
+    shifts, warps = neighbour_shifts(
+        grey,
+        surf.depth,
+        local.intrinsics,
+        local.pose,
+        seen,
+        where,
+        tp,
+        cp.occlusion_tolerance_m,
+        cp.align_shift_px,
+        cp.align_min_gain,
+    )
+    aligned = [replace(nb, offset=shift) for nb, shift in zip(used, shifts, strict=True)]
+    return aligned, warps
+
+
+def _texture(
+    image: np.ndarray,
+    seen: Sequence[NeighbourView],
+    surf: ViewSurface,
+    local: View,
+    params: DetectParams,
+    warps: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> np.ndarray:
     """The texture cue ``T_p`` (:mod:`streetcd.detect.texture`) of the view, on the pixels
     whose old surface is of ``texture.classes`` (all without), and the see-through test over
-    railings (:func:`_see_through`) where it is higher, weighted by class like eq. 5."""
+    railings (:func:`_see_through`) where it is higher, weighted by class like eq. 5. image
+    and the neighbours' images: grey levels (:func:`_greys`); warps: the neighbours warped
+    at the cue's size (:func:`_aligned`), or None."""
     tp = params.texture
-    # grey levels once per image (uint8, a quarter of float32's memory): the cue and the
-    # see-through test both read them
-    image = grey_u8(image)
-    seen = [(grey_u8(img), depth, intr, pose, holes) for img, depth, intr, pose, holes in seen]
     where = None
     if tp.classes:
         where = in_roles(surf.classes, tp.classes)
@@ -415,6 +461,7 @@ def _texture(
         scale_px(tp.registration_tolerance_px, local.intrinsics.width, minimum=0.0),
         where,
         tp.blur_px,
+        warps or None,
     )
     if tp.see_through_classes:
         np.maximum(texture, _see_through(image, surf, local, seen, params), out=texture)
@@ -611,6 +658,7 @@ def _raw_change_at_cell_scale(
         intr.dist,
     )
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
+    used = [replace(nb, offset=(nb.offset[0] * sy, nb.offset[1] * sx)) for nb in used]
     change, support = raw_change(
         cv2.resize(stretched, (ws, hs), interpolation=cv2.INTER_AREA),
         # np.take: contiguous, without the (hs, W) intermediate of a[rows][:, cols]

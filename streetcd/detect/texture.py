@@ -114,6 +114,7 @@ def texture_change(
     registration_px: float = 0.0,
     where: np.ndarray | None = None,
     blur_px: float = 0.0,
+    warps: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``T_p`` of the module docstring for view ``p``, at full resolution.
 
@@ -132,6 +133,9 @@ def texture_change(
     searched around the one found. blur_px : σ (px at the cue's scale) of a Gaussian that
     low-passes the view and each warped neighbour before they are compared (0: none;
     ``TextureParams.blur_px``, which the see-through test leaves out: it low-passes itself).
+    warps : per neighbour, its warp through ``depth_p`` over the whole view at the cue's
+    working size ((h, w) float32 grey levels, (h, w) bool valid), as
+    :func:`streetcd.detect.align.neighbour_shifts` made them; None: warped here.
     Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
     textured evidence per pixel).
     """
@@ -153,14 +157,17 @@ def texture_change(
         change = np.full(depth_b.shape, np.inf, np.float32)
         support = np.zeros(depth_b.shape, np.uint8)
         tiles = _tiles_near(where, small, box, reach=params.window_px // 2 + radius)
-        background = _background(where, small, box, params.window_px) if search > 0 else None
+        background = background_mask(where, small, box, params.window_px) if search > 0 else None
         surface = None  # (points, normals) of the view's surface, for the angle test
         if params.min_foreshortening > 0:
             points = surface_points(depth_b, rays)
             surface = (points, surface_normals(points))
-        for nb_image, nb_depth, nb_intr, nb_pose, holes in neighbours:
-            nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
-            warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
+        for i, (nb_image, nb_depth, nb_intr, nb_pose, holes) in enumerate(neighbours):
+            if warps is not None:  # the same values as warping the box here
+                warped, valid = warps[i][0][rows, cols], warps[i][1][rows, cols].copy()
+            else:
+                nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
+                warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
             warped = low_pass(warped, blur_px)
             if surface is not None:
                 centre = to_camera(nb_pose.center[None], pose_p)[0]  # the neighbour, in p's frame
@@ -362,7 +369,7 @@ def _tiles_near(
     return _Tiles(np.argwhere(wanted) * t, (h, w), reach)
 
 
-def _background(
+def background_mask(
     where: np.ndarray | None, small: tuple[int, int], box: tuple[slice, slice], margin: int
 ) -> np.ndarray:
     """(h, w) bool over ``box`` at the cue's size ``small`` (W, H): the pixels farther than
@@ -404,19 +411,32 @@ def global_shift(
     covers that) and costs a few passes over a quarter of the pixels whatever ``max_shift``.
     (0, 0) when nothing correlates.
     """
+    dy, dx, _, _ = shift_search(a, b, valid, max_shift, finest_level=1)
+    return max(-max_shift, min(max_shift, dy)), max(-max_shift, min(max_shift, dx))
+
+
+def shift_search(
+    a: np.ndarray, b: np.ndarray, valid: np.ndarray, max_shift: int, finest_level: int
+) -> tuple[int, int, float, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`global_shift`'s search down to pyramid level ``finest_level`` (0: the input's own
+    pixels), the shift not clamped to ``max_shift`` (the last ±1 px step may pass it), its
+    correlation (−2 when nothing correlates), and that level's band-passed ``a``, ``b`` and
+    ``valid`` (at the input's size for level 0)."""
     levels = [(np.asarray(a, np.float32), np.asarray(b, np.float32), np.asarray(valid, bool))]
     while (max_shift >> len(levels)) >= 1 and min(levels[-1][0].shape) >= 2 * GLOBAL_SHIFT_MIN_PX:
         levels.append(_half(*levels[-1]))
-    finest = min(1, len(levels) - 1)
+    finest = min(finest_level, len(levels) - 1)
     dy = dx = 0
+    score = -2.0
+    passed = (levels[0][0], levels[0][1], levels[0][2])
     for depth in range(len(levels) - 1, finest - 1, -1):
         la, lb, lv = levels[depth]
         coarsest = depth == len(levels) - 1
         reach = -(-max_shift >> depth) if coarsest else 1  # ceil(max_shift / 2**depth)
         cy, cx = (0, 0) if coarsest else (2 * dy, 2 * dx)
-        dy, dx = _best_global(_band_pass(la, lv), _band_pass(lb, lv), lv, cy, cx, reach)
-    dy, dx = dy << finest, dx << finest
-    return max(-max_shift, min(max_shift, dy)), max(-max_shift, min(max_shift, dx))
+        passed = (band_pass(la, lv), band_pass(lb, lv), lv)
+        dy, dx, score = _best_global(*passed, cy, cx, reach)
+    return dy << finest, dx << finest, float(score), passed
 
 
 def _half(
@@ -436,7 +456,7 @@ def _half(
     return mean(a), mean(b), n > 0.999
 
 
-def _band_pass(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def band_pass(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``x`` less its 5 × 5 mean over the valid pixels: the texture, not the light (0 where
     not valid)."""
     v = valid.astype(np.float32)
@@ -448,28 +468,37 @@ def _band_pass(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def _best_global(a, b, valid, cy, cx, reach):  # pragma: no cover - numba
-    """The (dy, dx) within ``reach`` of (cy, cx) with the largest correlation
-    sum(a·b') / sqrt(sum a² · sum b'²) over the pixels valid in both, b' = b[y − dy, x − dx];
-    a, b (H, W) float32, valid (H, W) bool. (cy, cx) when no shift has 64 such pixels."""
-    h, w = a.shape
+    """The (dy, dx) within ``reach`` of (cy, cx) with the largest :func:`shift_correlation`;
+    a, b (H, W) float32, valid (H, W) bool. Returns (dy, dx, that correlation); (cy, cx, −2)
+    when no shift has 64 pixels valid in both."""
     best, by, bx = -2.0, cy, cx
     for dy in range(cy - reach, cy + reach + 1):
         for dx in range(cx - reach, cx + reach + 1):
-            sab = saa = sbb = 0.0
-            n = 0
-            for y in range(max(0, dy), min(h, h + dy)):
-                for x in range(max(0, dx), min(w, w + dx)):
-                    if valid[y, x] and valid[y - dy, x - dx]:
-                        av, bv = a[y, x], b[y - dy, x - dx]
-                        sab += av * bv
-                        saa += av * av
-                        sbb += bv * bv
-                        n += 1
-            if n >= 64 and saa > 0.0 and sbb > 0.0:
-                c = sab / np.sqrt(saa * sbb)
-                if c > best:
-                    best, by, bx = c, dy, dx
-    return by, bx
+            c, n = shift_correlation(a, b, valid, dy, dx)
+            if n >= 64 and c > best:  # NaN (nothing to correlate) is never greater
+                best, by, bx = c, dy, dx
+    return by, bx, best
+
+
+@numba.njit(cache=True, nogil=True)
+def shift_correlation(a, b, valid, dy, dx):  # pragma: no cover - numba
+    """sum(a·b') / sqrt(sum a² · sum b'²) over the pixels valid in both, b' = b[y − dy, x − dx],
+    and how many pixels those are; NaN when either sum is 0. a, b (H, W) float32, valid (H, W)
+    bool."""
+    h, w = a.shape
+    sab = saa = sbb = 0.0
+    n = 0
+    for y in range(max(0, dy), min(h, h + dy)):
+        for x in range(max(0, dx), min(w, w + dx)):
+            if valid[y, x] and valid[y - dy, x - dx]:
+                av, bv = a[y, x], b[y - dy, x - dx]
+                sab += av * bv
+                saa += av * av
+                sbb += bv * bv
+                n += 1
+    if saa > 0.0 and sbb > 0.0:
+        return sab / np.sqrt(saa * sbb), n
+    return np.nan, n
 
 
 def _best_ncc_on(
