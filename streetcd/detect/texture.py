@@ -427,9 +427,7 @@ def shift_search(
         levels.append(_half(*levels[-1]))
     finest = min(finest_level, len(levels) - 1)
     dy = dx = 0
-    score = -2.0
-    passed = (levels[0][0], levels[0][1], levels[0][2])
-    for depth in range(len(levels) - 1, finest - 1, -1):
+    for depth in range(len(levels) - 1, finest - 1, -1):  # at least one level
         la, lb, lv = levels[depth]
         coarsest = depth == len(levels) - 1
         reach = -(-max_shift >> depth) if coarsest else 1  # ceil(max_shift / 2**depth)
