@@ -187,9 +187,9 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         for (s, loc, img), nb in zip(surfaces[1:], nbs, strict=True)
     ]
     greys = _greys(image, seen) if nbs else None
-    warps = None
+    working = None
     if params.correlate.align_shift_px > 0 and greys is not None:
-        nbs, warps = _aligned(nbs, greys, surf, local, params)  # the registration shifts
+        nbs, working = _aligned(nbs, greys, surf, local, params)  # the registration shifts
     kind = reference_kind(scene.cloud, params) if surf.colour is not None else None
     gated = kind == "colour" and params.correlate.second_smallest_gate > 0
     change, _, minimum = _raw_change_at_cell_scale(  # as detect_view
@@ -206,7 +206,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     change, _ = fuse_appearance(image, surf, change, local, params)
     t3 = time.perf_counter()
     if params.texture.enabled and greys is not None:
-        texture = _texture(*greys, surf, local, params, warps)
+        texture = _texture(*greys, surf, local, params, working)
         change = np.maximum(change, np.float32(params.texture.weight) * texture)
     t4 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)

@@ -12,6 +12,7 @@ import pytest
 from streetcd.config import REFERENCE_WIDTH_PX, Config, CorrelateParams, DetectParams, TextureParams
 from streetcd.detect.align import neighbour_shifts
 from streetcd.detect.correlate import Neighbour, raw_change, stretch_histogram
+from streetcd.detect.texture import texture_change, working_view
 from streetcd.errors import InputError
 from streetcd.types import Intrinsics, Pose
 
@@ -49,11 +50,9 @@ def _wall(yaw_px: float, seed: int = 5):
 
 def _shifts(view, other, pose_p, pose_q, depth, max_px=12.0, min_gain=0.05):
     nbs = [(other, depth, INTR, pose_q, None)]
-    shifts, warps = neighbour_shifts(
-        view, depth, INTR, pose_p, nbs, None, PARAMS, 0.3, max_px * ONE_PX, min_gain
-    )
-    assert len(warps) == 1 and warps[0][0].shape == warps[0][1].shape == depth.shape
-    return shifts
+    working = working_view(view, depth, INTR, pose_p, nbs, PARAMS, 0.3)
+    assert len(working.warps) == 1 and working.warps[0][0].shape == depth.shape
+    return neighbour_shifts(working, INTR.width, None, PARAMS, max_px * ONE_PX, min_gain)
 
 
 @pytest.mark.parametrize("yaw_px", [-6.0, 4.0, 7.0])
@@ -109,16 +108,20 @@ def test_the_alignment_is_a_switch_and_off_keeps_the_older_hash():
 
 
 def test_the_texture_cue_on_the_alignments_warps_is_the_cue_warping_itself():
-    from streetcd.detect.texture import texture_change
-
     view, other, pose_p, pose_q, depth = _wall(5.0)
     depth = depth.copy()
     depth[40:80, 60:100] = 5.0  # an old object in front of the wall
     nbs = [(other, depth, INTR, pose_q, None)]
     params = TextureParams(scale=0.5, window_px=9)
-    _, warps = neighbour_shifts(view, depth, INTR, pose_p, nbs, None, params, 0.3, 300.0, 0.05)
+    working = working_view(view, depth, INTR, pose_p, nbs, params, 0.3)
     where = np.zeros(depth.shape, bool)
     where[30:90, 50:110] = True
     own = texture_change(view, depth, INTR, pose_p, nbs, params, 0.3, 2.0, where)
-    shared = texture_change(view, depth, INTR, pose_p, nbs, params, 0.3, 2.0, where, warps=warps)
+    shared = texture_change(view, depth, INTR, pose_p, nbs, params, 0.3, 2.0, where, 0.0, working)
     assert np.array_equal(own[0], shared[0]) and np.array_equal(own[1], shared[1])
+
+
+def test_a_search_of_one_working_pixel_keeps_no_shift():
+    view, other, pose_p, pose_q, depth = _wall(7.0)
+    # 1 px at the working size: any shift found lies at the search's edge
+    assert _shifts(view, other, pose_p, pose_q, depth, max_px=1.0) == [(0.0, 0.0)]

@@ -24,75 +24,53 @@ twenty-fifth round).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
-import cv2
 import numpy as np
 
 from streetcd.config import TextureParams, scale_px
-from streetcd.detect.correlate import Neighbour, NeighbourView, camera_rays, warp_neighbour
 from streetcd.detect.texture import (
+    WorkingView,
     background_mask,
-    grey,
     shift_correlation,
     shift_search,
-    shrunk_grey,
     work_scale,
-    work_size,
 )
-from streetcd.types import Intrinsics, Pose
 
 
 def neighbour_shifts(
-    grey_p: np.ndarray,
-    depth_p: np.ndarray,
-    intrinsics_p: Intrinsics,
-    pose_p: Pose,
-    neighbours: Sequence[NeighbourView],
+    working: WorkingView,
+    width: int,
     where: np.ndarray | None,
     params: TextureParams,
-    occlusion_tolerance_m: float,
     max_shift_px: float,
     min_gain: float,
-) -> tuple[list[tuple[float, float]], list[tuple[np.ndarray, np.ndarray]]]:
+) -> list[tuple[float, float]]:
     """The shift (dy, dx) of each neighbour against the view, in the view's full-resolution
     pixels: eq. 5 compares the view's pixel (y, x) with what the neighbour sees of the old
     surface at (y − dy, x − dx). (0.0, 0.0) where no shift is kept (module doc).
 
-    grey_p : (H, W) uint8 grey levels of the view (or (H, W, 3) RGB). depth_p : (H, W)
-    float32 metres, the view's old surface (NaN = none). neighbours : (image, depth,
-    intrinsics, pose, holes) as the texture cue takes them. where : (H, W) bool, the pixels
-    whose change is looked for (the shift is measured more than a texture window away from
-    them), or None. params : the texture cue's (working size, window). max_shift_px : the
-    largest shift looked for, px at ``REFERENCE_WIDTH_PX``. min_gain : how much better than
-    no shift the best must correlate (band-passed grey levels, a correlation in [−1, 1]).
-
-    Also returns each neighbour's warp at the working size, (warped grey levels (h, w)
-    float32, valid (h, w) bool), as :func:`~streetcd.detect.texture.texture_change` makes them
-    over the whole view (it takes them instead of warping again).
+    working : the view and its neighbours at the texture cue's working size
+    (:func:`~streetcd.detect.texture.working_view`). width : the view's width (px). where :
+    (H, W) bool, the pixels whose change is looked for (the shift is measured more than a
+    texture window away from them), or None. params : the texture cue's (working size,
+    window). max_shift_px : the largest shift looked for, px at ``REFERENCE_WIDTH_PX``.
+    min_gain : how much better than no shift the best must correlate (band-passed grey
+    levels, a correlation in [−1, 1]).
     """
-    h, w = depth_p.shape
-    small = work_size(params, (h, w))
-    s = work_scale(params, w)
-    search = round(scale_px(max_shift_px, w, minimum=0.0) * s)
-    if search < 1:
-        return [(0.0, 0.0)] * len(neighbours), []
-    depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
-    rays = camera_rays(intrinsics_p.scaled(small[0] / w))
-    view = shrunk_grey(grey_p, small)
+    s = work_scale(params, width)
+    search = round(scale_px(max_shift_px, width, minimum=0.0) * s)
+    if search < 2:  # a search of one pixel: every shift it finds lies at its edge
+        return [(0.0, 0.0)] * len(working.warps)
+    small = (working.depth.shape[1], working.depth.shape[0])
     whole = (slice(0, small[1]), slice(0, small[0]))
     background = background_mask(where, small, whole, params.window_px)
-    shifts, warps = [], []
-    for image, depth, intrinsics, pose, holes in neighbours:
-        nb = Neighbour(grey(image), depth, intrinsics, pose, holes=holes)
-        warped, seen = warp_neighbour(nb, depth_s, rays, pose_p, occlusion_tolerance_m)
-        warps.append((warped, seen))
+    shifts = []
+    for warped, seen in working.warps:
         valid = seen & background
-        dy, dx, best, passed = shift_search(view, warped, valid, search, finest_level=0)
+        dy, dx, best, passed = shift_search(working.grey, warped, valid, search, finest_level=0)
         if (dy, dx) != (0, 0):
             at_edge = max(abs(dy), abs(dx)) >= search
             unshifted, _ = shift_correlation(*passed, 0, 0)
             if at_edge or best - (0.0 if np.isnan(unshifted) else unshifted) < min_gain:
                 dy = dx = 0
         shifts.append((dy / s, dx / s))
-    return shifts, warps
+    return shifts

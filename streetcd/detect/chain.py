@@ -66,7 +66,7 @@ from streetcd.detect.seethrough import see_through_change
 from streetcd.detect.silhouette import GROUND_ROLES, near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
 from streetcd.detect.sweep import nearer_depth_change
-from streetcd.detect.texture import grey_u8, texture_change
+from streetcd.detect.texture import WorkingView, grey_u8, texture_change, working_view
 from streetcd.errors import (
     EmptyViewError,
     InputError,
@@ -252,9 +252,9 @@ def detect_view(
     greys = None
     if used and (params.correlate.align_shift_px > 0 or params.texture.enabled):
         greys = _greys(image, seen)
-    warps = None  # the neighbours warped at the texture cue's size, made by the alignment
+    working = None  # the view and its neighbours at the texture cue's size, made once
     if params.correlate.align_shift_px > 0 and greys is not None:
-        used, warps = _aligned(used, greys, surf, local, params)
+        used, working = _aligned(used, greys, surf, local, params)
         lap("align")
     kind = reference_kind(cloud, params, surfaces) if surf.colour is not None else None
     gated = kind == "colour" and params.correlate.second_smallest_gate > 0
@@ -275,7 +275,7 @@ def detect_view(
         lap("appearance")
     texture = None
     if params.texture.enabled and greys is not None:
-        texture = _texture(*greys, surf, local, params, warps)
+        texture = _texture(*greys, surf, local, params, working)
         fused = np.maximum(fused, np.float32(params.texture.weight) * texture)
         lap("texture")
     if params.correlate.nearer_weight > 0 and len(seen) >= 2:
@@ -410,27 +410,21 @@ def _aligned(
     surf: ViewSurface,
     local: View,
     params: DetectParams,
-) -> tuple[list[Neighbour], list[tuple[np.ndarray, np.ndarray]]]:
+) -> tuple[list[Neighbour], WorkingView]:
     """The neighbours of eq. 5 with their registration shifts against the view
-    (:mod:`streetcd.detect.align`, measured away from the texture cue's classes), and the
-    warps it made, which the texture cue reuses."""
+    (:mod:`streetcd.detect.align`, measured away from the texture cue's classes), and the view
+    and its neighbours at the cue's working size, which the cue reads too."""
     grey, seen = greys
     tp, cp = params.texture, params.correlate
+    working = working_view(
+        grey, surf.depth, local.intrinsics, local.pose, seen, tp, cp.occlusion_tolerance_m
+    )
     where = in_roles(surf.classes, tp.classes) if tp.classes else None
-    shifts, warps = neighbour_shifts(
-        grey,
-        surf.depth,
-        local.intrinsics,
-        local.pose,
-        seen,
-        where,
-        tp,
-        cp.occlusion_tolerance_m,
-        cp.align_shift_px,
-        cp.align_min_gain,
+    shifts = neighbour_shifts(
+        working, local.intrinsics.width, where, tp, cp.align_shift_px, cp.align_min_gain
     )
     aligned = [replace(nb, offset=shift) for nb, shift in zip(used, shifts, strict=True)]
-    return aligned, warps
+    return aligned, working
 
 
 def _texture(
@@ -439,13 +433,13 @@ def _texture(
     surf: ViewSurface,
     local: View,
     params: DetectParams,
-    warps: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+    working: WorkingView | None = None,
 ) -> np.ndarray:
     """The texture cue ``T_p`` (:mod:`streetcd.detect.texture`) of the view, on the pixels
     whose old surface is of ``texture.classes`` (all without), and the see-through test over
     railings (:func:`_see_through`) where it is higher, weighted by class like eq. 5. image
-    and the neighbours' images: grey levels (:func:`_greys`); warps: the neighbours warped
-    at the cue's size (:func:`_aligned`), or None."""
+    and the neighbours' images: grey levels (:func:`_greys`); working: them at the cue's
+    working size (:func:`_aligned`), or None."""
     tp = params.texture
     where = None
     if tp.classes:
@@ -461,7 +455,7 @@ def _texture(
         scale_px(tp.registration_tolerance_px, local.intrinsics.width, minimum=0.0),
         where,
         tp.blur_px,
-        warps or None,
+        working,
     )
     if tp.see_through_classes:
         np.maximum(texture, _see_through(image, surf, local, seen, params), out=texture)

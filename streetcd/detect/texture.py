@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numba
@@ -114,7 +115,7 @@ def texture_change(
     registration_px: float = 0.0,
     where: np.ndarray | None = None,
     blur_px: float = 0.0,
-    warps: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+    prepared: WorkingView | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``T_p`` of the module docstring for view ``p``, at full resolution.
 
@@ -133,9 +134,8 @@ def texture_change(
     searched around the one found. blur_px : σ (px at the cue's scale) of a Gaussian that
     low-passes the view and each warped neighbour before they are compared (0: none;
     ``TextureParams.blur_px``, which the see-through test leaves out: it low-passes itself).
-    warps : per neighbour, its warp through ``depth_p`` over the whole view at the cue's
-    working size ((h, w) float32 grey levels, (h, w) bool valid), as
-    :func:`streetcd.detect.align.neighbour_shifts` made them; None: warped here.
+    prepared : the view and ``neighbours`` at the cue's working size (:func:`working_view`,
+    the same ``depth_p``, images and poses), read instead of made again; None: made here.
     Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
     textured evidence per pixel).
     """
@@ -143,7 +143,10 @@ def texture_change(
     small = work_size(params, (h, w))
     s = work_scale(params, w)
     intr_s = intrinsics_p.scaled(small[0] / w)
-    depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
+    if prepared is not None:
+        depth_s = prepared.depth
+    else:
+        depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
     radius = round(registration_px * s)
     search = round(scale_px(params.max_global_shift_px, w, minimum=0.0) * s)
     box = _box(where, small, params.window_px + radius + search)
@@ -151,8 +154,9 @@ def texture_change(
     support_s = np.zeros(depth_s.shape, np.uint8)
     if box is not None:
         rows, cols = box
-        grey_p = low_pass(shrunk_grey(image_p, small)[rows, cols], blur_px)
-        rays = camera_rays(intr_s)[rows, cols]
+        view = prepared.grey if prepared is not None else shrunk_grey(image_p, small)
+        grey_p = low_pass(view[rows, cols], blur_px)
+        rays = (prepared.rays if prepared is not None else camera_rays(intr_s))[rows, cols]
         depth_b = np.ascontiguousarray(depth_s[rows, cols])
         change = np.full(depth_b.shape, np.inf, np.float32)
         support = np.zeros(depth_b.shape, np.uint8)
@@ -163,8 +167,9 @@ def texture_change(
             points = surface_points(depth_b, rays)
             surface = (points, surface_normals(points))
         for i, (nb_image, nb_depth, nb_intr, nb_pose, holes) in enumerate(neighbours):
-            if warps is not None:  # the same values as warping the box here
-                warped, valid = warps[i][0][rows, cols], warps[i][1][rows, cols].copy()
+            if prepared is not None:  # the same values as warping the box here
+                warped, valid = prepared.warps[i]
+                warped, valid = warped[rows, cols], valid[rows, cols].copy()
             else:
                 nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
                 warped, valid = warp_neighbour(nb, depth_b, rays, pose_p, occlusion_tolerance_m)
@@ -187,6 +192,46 @@ def texture_change(
     if where is not None:
         full[~where] = 0.0
     return full, cv2.resize(support_s, (w, h), interpolation=cv2.INTER_NEAREST)
+
+
+@dataclass(frozen=True)
+class WorkingView:
+    """A view and its neighbours at the texture cue's working size, made once per view
+    (:func:`working_view`) for the registration (:mod:`streetcd.detect.align`) and the cue.
+
+    grey : (h, w) float32 the view's grey levels, shrunk (:func:`shrunk_grey`). depth : (h, w)
+    float32 metres, its old surface resized nearest. rays : (h, w, 2) float32
+    (:func:`~streetcd.detect.correlate.camera_rays` at that size). warps : per neighbour, its
+    image warped through that surface (eq. 4): (h, w) float32 grey levels and (h, w) bool
+    valid (:func:`~streetcd.detect.correlate.warp_neighbour`).
+    """
+
+    grey: np.ndarray
+    depth: np.ndarray
+    rays: np.ndarray
+    warps: list[tuple[np.ndarray, np.ndarray]]
+
+
+def working_view(
+    image_p: np.ndarray,
+    depth_p: np.ndarray,
+    intrinsics_p: Intrinsics,
+    pose_p: Pose,
+    neighbours: Sequence[NeighbourView],
+    params: TextureParams,
+    occlusion_tolerance_m: float,
+) -> WorkingView:
+    """:class:`WorkingView` of view ``p`` (image (H, W, 3) RGB or (H, W) grey levels, depth
+    (H, W) float32 metres) and its ``neighbours`` (as :func:`texture_change` takes them)."""
+    h, w = depth_p.shape
+    small = work_size(params, (h, w))
+    depth_s = cv2.resize(depth_p, small, interpolation=cv2.INTER_NEAREST)
+    rays = camera_rays(intrinsics_p.scaled(small[0] / w))
+    warps = []
+    for nb_image, nb_depth, nb_intr, nb_pose, holes in neighbours:
+        nb = Neighbour(grey(nb_image), nb_depth, nb_intr, nb_pose, holes=holes)
+        warps.append(warp_neighbour(nb, depth_s, rays, pose_p, occlusion_tolerance_m))
+    return WorkingView(shrunk_grey(image_p, small), depth_s, rays, warps)
 
 
 def low_pass(grey_levels: np.ndarray, sigma: float) -> np.ndarray:
