@@ -683,10 +683,6 @@ def _outline_grey(
     return grey_u8(cv2.LUT(np.ascontiguousarray(image), view_lut.astype(np.uint8)))
 
 
-_NOT_GROUND = np.ones(256, np.bool_)
-_NOT_GROUND[list(GROUND_ROLES)] = False
-
-
 def _with_near_hypothesis(
     change: np.ndarray,
     stretched: np.ndarray,
@@ -702,7 +698,7 @@ def _with_near_hypothesis(
     view's levels from :func:`_outline_grey`: a near object's band keeps within its outline
     there (None: every band is its reach). Updates ``change`` in place and returns it."""
     # the ground's and the road's bands are their reach (they have no unscanned side)
-    bounded = None if grey is None else _NOT_GROUND[surf.classes]  # np.isin: 4 ms at 2 MP
+    bounded = None if grey is None else ~in_roles(surf.classes, GROUND_ROLES)
     near = near_depth_hypothesis(
         surf.depth,
         local.intrinsics.fx,

@@ -43,6 +43,7 @@ import numba
 import numpy as np
 
 from streetcd.config import CorrelateParams, scale_px
+from streetcd.detect.roles import in_roles
 from streetcd.errors import InputError
 from streetcd.geometry.camera import distort, pixel_rays
 from streetcd.types import Intrinsics, Pose
@@ -660,10 +661,7 @@ def weigh_low_classes(change: np.ndarray, classes: np.ndarray, params: Correlate
     class code ``classes`` (H, W) uint8 is one of ``params.low_weight_classes`` (trees, roads
     and ground get "a small weight", paper §3.3)."""
     if params.low_weight_classes and params.low_class_weight != 1.0:
-        # a 256-entry look-up of the class codes: much faster than np.isin (docs/BENCHMARKS.md)
-        table = np.zeros(256, dtype=np.uint8)
-        table[np.asarray(params.low_weight_classes, dtype=np.int64)] = 1
-        low = cv2.LUT(np.ascontiguousarray(classes, dtype=np.uint8), table).view(bool)
+        low = in_roles(classes, params.low_weight_classes)  # a look-up, not np.isin
         np.multiply(change, np.float32(params.low_class_weight), out=change, where=low)
 
 
