@@ -11,6 +11,7 @@ from streetcd.config import DetectParams, TextureParams
 from streetcd.detect.correlate import camera_rays
 from streetcd.detect.texture import (
     _best_ncc,
+    _best_ncc_in,
     _best_ncc_on,
     _tiles_near,
     foreshortening,
@@ -89,6 +90,30 @@ def test_best_ncc_is_the_best_local_ncc_over_the_shifts():
     assert np.abs(best - want).max() < 1e-3
     # the neighbour is the view moved by (1, -2): that shift finds it, almost everywhere
     assert np.median(best[textured]) > 0.95
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_best_ncc_over_the_valid_pixels_box_is_the_whole_arrays_to_the_bit(seed):
+    rng = np.random.default_rng(seed)
+    h, w = (int(n) for n in rng.integers(40, 120, 2))
+    a = rng.normal(100, 30, (h, w)).astype(np.float32)
+    b = (a + rng.normal(0, 10, (h, w))).astype(np.float32)
+    valid = np.zeros((h, w), bool)
+    y0, x0 = int(rng.integers(0, h - 20)), int(rng.integers(0, w - 20))
+    valid[y0 : y0 + int(rng.integers(8, 40)), x0 : x0 + int(rng.integers(8, 40))] = True
+    valid &= rng.random((h, w)) < 0.9
+    params = TextureParams(window_px=7, min_std=2.0)
+    offset = (int(rng.integers(-2, 3)), int(rng.integers(-2, 3)))
+    boxed = _best_ncc(a, b, valid, params, 2, offset)
+    whole = _best_ncc_in(a, b, valid, params, 2, offset)
+    assert whole[1].any()
+    assert np.array_equal(boxed[0], whole[0]) and np.array_equal(boxed[1], whole[1])
+
+
+def test_best_ncc_without_a_valid_pixel_is_nothing():
+    a = np.random.default_rng(0).normal(100, 30, (30, 40)).astype(np.float32)
+    best, textured = _best_ncc(a, a, np.zeros(a.shape, bool), TextureParams(), 2)
+    assert not textured.any() and not best.any()
 
 
 def test_the_cue_on_tiles_near_the_wanted_pixels_equals_the_cue_everywhere_there():

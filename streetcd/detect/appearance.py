@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from streetcd.config import AppearanceParams, scale_px
+from streetcd.detect.boxes import mask_box
 from streetcd.detect.roles import in_roles
 from streetcd.errors import InputError
 
@@ -206,16 +207,9 @@ def fill_nearest(
     holes = where & ~valid
     if not holes.any() or not valid.any():
         return reference
-    rows, cols = np.flatnonzero(holes.any(axis=1)), np.flatnonzero(holes.any(axis=0))
-    h, w = valid.shape
-    r0, c0 = int(rows[0]), int(cols[0])
-    r1, c1 = int(rows[-1]) + 1, int(cols[-1]) + 1
-    if reach_px > 0:
-        r0, c0 = max(0, r0 - reach_px), max(0, c0 - reach_px)
-        r1, c1 = min(h, r1 + reach_px), min(w, c1 + reach_px)
-    else:
-        r0, c0, r1, c1 = 0, 0, h, w
-    box = valid[r0:r1, c0:c1]
+    # the holes' box grown by the reach (never None: there are holes), or the whole image
+    grown = (mask_box(holes, reach_px) if reach_px > 0 else None) or np.s_[:, :]
+    box = valid[grown]
     if not box.any():
         return reference
     _, labels = cv2.distanceTransformWithLabels(
@@ -223,11 +217,11 @@ def fill_nearest(
     )
     # labels number the box's valid pixels 1, 2, … in row-major order
     source = np.flatnonzero(box.ravel())
-    box_holes = holes[r0:r1, c0:c1]
+    box_holes = holes[grown]
     out = reference.copy()
     pick = source[labels[box_holes] - 1]
-    flat = reference[r0:r1, c0:c1].reshape((-1, *reference.shape[2:]))
-    out[r0:r1, c0:c1][box_holes] = flat[pick]
+    flat = reference[grown].reshape((-1, *reference.shape[2:]))
+    out[grown][box_holes] = flat[pick]
     return out
 
 

@@ -185,6 +185,10 @@ def cloud_colours(
     return colours
 
 
+def _no_colours() -> None:
+    return None
+
+
 def detect_view(
     image: np.ndarray,
     view: View,
@@ -233,11 +237,14 @@ def detect_view(
     seen: list[NeighbourView] = []
     names: list[str] = []
     view_lut = stretch_lut(image, params.correlate.stretch_percentiles)
+    # Only a neighbour's depth is read below: without a cache, where its surface is not kept
+    # for its own turn as a view, its colour raster is not drawn.
+    nb_colours = colours if surfaces is not None else _no_colours
     for nb_image, nb_view in neighbours:
         nb_image = _check_image(nb_image, nb_view)
         nb_local = nb_view.local(cloud.origin)
         try:
-            nb_surf = view_surface_of(nb_image, nb_local, cloud, params, surfaces, colours)
+            nb_surf = view_surface_of(nb_image, nb_local, cloud, params, surfaces, nb_colours)
         except EmptyViewError:
             lap("surface")
             continue  # a neighbour without points gives no evidence

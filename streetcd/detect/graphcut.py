@@ -31,6 +31,7 @@ import numba
 import numpy as np
 
 from streetcd.config import REFERENCE_WIDTH_PX, GraphCutParams, scale_px
+from streetcd.detect.boxes import mask_box
 
 _DEFAULTS = GraphCutParams()  # frozen: one shared default instance
 
@@ -431,12 +432,11 @@ def speckle_filter(mask: np.ndarray, min_px: float) -> np.ndarray:
     """
     if min_px <= 1:
         return mask.copy()
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
+    box = mask_box(mask)
+    if box is None:
         return mask.copy()
     # labelled within the segments' bounding box: a view's changes cover a few per cent of
     # it, and labelling the whole image (int32 labels, 11 ms at 2 MP) was most of the cost
-    box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
     n, labels, stats, _ = cv2.connectedComponentsWithStats(
         np.ascontiguousarray(mask[box], np.uint8), connectivity=8
     )

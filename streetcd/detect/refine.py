@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from streetcd.config import DetectParams, RefineParams, scale_px
+from streetcd.detect.boxes import mask_box
 from streetcd.detect.graphcut import speckle_filter, speckle_min_px
 
 _DEFAULTS = RefineParams()
@@ -100,11 +101,11 @@ def _windows(mask: np.ndarray, margin: int) -> list[tuple[int, int, int, int]]:
     """(y0, y1, x0, x1) windows, one per group of regions less than 2 ``margin`` apart: each
     group's bounding box grown by ``margin``. Regions whose windows would overlap share one
     GrabCut (and its colour models): no pixel is cut twice."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    top, left = max(int(rows[0]) - margin, 0), max(int(cols[0]) - margin, 0)
-    bottom = min(int(rows[-1]) + margin + 1, mask.shape[0])
-    right = min(int(cols[-1]) + margin + 1, mask.shape[1])
-    box = mask[top:bottom, left:right].astype(np.uint8)
+    grown = mask_box(mask, margin)
+    if grown is None:
+        return []
+    top, left = grown[0].start, grown[1].start
+    box = mask[grown].astype(np.uint8)
     square = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
     n, _, stats, _ = cv2.connectedComponentsWithStats(cv2.dilate(box, square), connectivity=8)
     return [

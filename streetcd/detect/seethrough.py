@@ -44,6 +44,7 @@ import numpy as np
 
 from streetcd.config import TextureParams
 from streetcd.detect.appearance import fill_nearest
+from streetcd.detect.boxes import mask_box
 from streetcd.detect.correlate import NeighbourView
 from streetcd.detect.texture import low_pass, shrunk_grey, texture_change, work_size
 from streetcd.types import Intrinsics, Pose
@@ -138,11 +139,10 @@ def blur_groups(
     whose blur ``σ = blur_m · focal_px / z`` (``z`` the median ``depth`` (H, W) float32 metres of
     the piece's ``own`` pixels) lies within one ``BLUR_STEP`` bin; pieces without an own pixel
     are left out."""
-    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
-    if rows.size == 0:
+    box = mask_box(inside)
+    if box is None:
         return
     # labelled within the footprint's bounding box (a railing's strip, not the whole image)
-    box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
     n, labels = cv2.connectedComponents(np.ascontiguousarray(inside[box], np.uint8), connectivity=8)
     if n <= 1:
         return

@@ -40,6 +40,7 @@ import numba
 import numpy as np
 
 from streetcd.config import TextureParams, scale_px
+from streetcd.detect.boxes import mask_box
 from streetcd.detect.correlate import (
     Neighbour,
     NeighbourView,
@@ -585,7 +586,30 @@ def _best_ncc(
     Per shift, one numba pass writes the six products whose window sums the NCC needs
     (1, a, a², b, b², ab over the pixels valid in both), one six-channel box filter sums
     them, and a second pass keeps the best NCC: the same numbers as :func:`local_ncc`
-    shift by shift (up to float32 rounding), without its dozen full-size temporaries."""
+    shift by shift (up to float32 rounding), without its dozen full-size temporaries.
+
+    Only the box of the ``valid`` pixels is computed: every product outside it is 0 and the
+    NCC is wanted only inside it, so the box filters over the box alone, with the image's
+    zero border, sum the same values (often a small part: the warped neighbours' valid
+    pixels on the cue's classes)."""
+    best = np.zeros(np.shape(a), np.float32)
+    any_textured = np.zeros(np.shape(a), np.bool_)
+    box = mask_box(valid)
+    if box is None:
+        return best, any_textured
+    best[box], any_textured[box] = _best_ncc_in(a[box], b[box], valid[box], params, radius, offset)
+    return best, any_textured
+
+
+def _best_ncc_in(
+    a: np.ndarray,
+    b: np.ndarray,
+    valid: np.ndarray,
+    params: TextureParams,
+    radius: int,
+    offset: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_best_ncc` on arrays of any size (its per-shift passes)."""
     a = np.ascontiguousarray(a, np.float32)
     b = np.ascontiguousarray(b, np.float32)
     valid = np.ascontiguousarray(valid, np.bool_)
