@@ -380,9 +380,20 @@ class RefineParams:
     # how far (px at REFERENCE_WIDTH_PX) the outline may move: half a 50 px superpixel cell
     band_px: float = 25.0
     iterations: int = 1  # GrabCut iterations (colour models re-fitted); 1 is the cheapest
+    # [ours] roles whose changed pixels are regions apart from the others' (the mask cut one
+    # pixel wide where they meet, streetcd.detect.regions.cut_apart): an old car gone or a
+    # passer-by beside a new pole is then its own change object, kept out as a transient
+    # (issue 17). Empty: the regions are the mask's 8-connected components.
+    apart_classes: tuple[int, ...] = (classes.CAR, classes.PEDESTRIAN)
 
     def __post_init__(self) -> None:
         _check(self.band_px >= 1, "band_px", self.band_px, ">= 1")
+        _check(
+            all(type(c) is int and 0 <= c <= 255 for c in self.apart_classes),
+            "refine.apart_classes",
+            list(self.apart_classes),
+            "class codes 0-255",
+        )
         _check(self.iterations >= 1, "iterations", self.iterations, ">= 1")
 
 
@@ -716,6 +727,8 @@ class Config:
                 del detect["correlate"][key]
         if not self.detect.graphcut.energy_of_mean:  # the mean of eq. 7: older hashes hold
             del detect["graphcut"]["energy_of_mean"]
+        if not self.detect.refine.apart_classes:  # the mask's components: older hashes hold
+            del detect["refine"]["apart_classes"]
         if self.detect.appearance.transfer == "linear":  # Reinhard's: older hashes hold
             del detect["appearance"]["transfer"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold

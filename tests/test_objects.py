@@ -358,6 +358,49 @@ def test_a_regions_foot_is_the_old_class_just_below_it():
     assert g.foot_class == 0
 
 
+def test_an_old_cars_changed_pixels_are_a_region_apart_from_a_new_poles_beside_it():
+    from streetcd.detect.regions import changed_regions, cut_apart
+    from streetcd.types import Intrinsics, Pose
+
+    h, w = 60, 80
+    classes = np.full((h, w), C.BUILDING, np.uint8)
+    classes[20:50, 40:70] = C.CAR  # a car of the old cloud, gone
+    classes[25:30, 50:60] = 0  # its windows: no old surface
+    mask = np.zeros((h, w), bool)
+    mask[10:50, 30:40] = True  # a new pole before the wall, touching...
+    mask[20:50, 40:70] = True  # ...the car's pixels, gone from the image
+    mask[5:10, 30:40] = True  # the sky above the pole (no old surface): the pole's side
+    classes[5:10, 30:40] = 0
+    cut = cut_apart(mask, classes, (C.CAR, C.PEDESTRIAN))
+    # one pixel-wide line of the car's pixels along the pole is left out, nothing else
+    assert (mask & ~cut).sum() == 30 and not (cut & ~mask).any()
+    assert not cut[20:50, 40].any() and cut[20:50, 41:70].all()
+    intr = Intrinsics(w, h, 80.0, 80.0, w / 2, h / 2)
+    depth = np.full((h, w), 10.0, np.float32)
+    labels, regions = changed_regions(
+        cut, cut.astype(np.float32), depth, classes, intr, Pose(np.eye(3), np.zeros(3))
+    )
+    assert sorted((g.pixels, g.dominant_class) for g in regions) == [
+        (450, C.BUILDING),  # the pole and the sky above it
+        (30 * 29, C.CAR),  # the car, its windows with it
+    ]
+    assert labels[7, 35] == labels[30, 35] != labels[27, 55] == labels[45, 65]
+    # off, or no old vehicle under the mask: the mask as it is (the same array)
+    assert cut_apart(mask, classes, ()) is mask
+    assert cut_apart(mask, np.full((h, w), C.BUILDING, np.uint8), (C.CAR,)) is mask
+
+
+def test_a_component_without_any_old_surface_is_not_cut():
+    from streetcd.detect.regions import cut_apart
+
+    classes = np.zeros((30, 30), np.uint8)
+    classes[:, 20:] = C.CAR
+    mask = np.zeros((30, 30), bool)
+    mask[5:15, 2:10] = True  # no old surface at all: a region of its own, as it is
+    mask[5:15, 22:28] = True  # on the car alone: nothing else to cut it from
+    assert (cut_apart(mask, classes, (C.CAR,)) == mask).all()
+
+
 def publish(index, regions_of, ground=None, params=PARAMS):
     """Publish one night of the street (2026-11-01) in which ``regions_of(view)`` gives each
     view's regions (labels 1, 2, …), and rebuild the objects with ``ground``. Returns the

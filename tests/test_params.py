@@ -11,6 +11,7 @@ from streetcd.config import (
     CorrelateParams,
     DetectParams,
     GraphCutParams,
+    RefineParams,
     RunParams,
     SegmentParams,
     SurfaceParams,
@@ -121,7 +122,9 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
 def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
-    # so it must come from a change of the results (2026-11-29, twenty-fourth round: the
+    # so it must come from a change of the results (2026-11-29, the twenty-sixth round: an
+    # old vehicle's changed pixels cut apart from the others' (refine.apart_classes);
+    # 5f58a3c42a72f9a6 before, from the twenty-fourth round: the
     # near-depth band ends at the near object's outline in the view, and from the twenty-fifth
     # round each neighbour's registration shift (27e71fcf2b40181e without it); 029b331307b07b3f
     # before,
@@ -137,31 +140,46 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # railing's foot; b391d095e4e6e3b2 before that, from the sixteenth round: the rules of the
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "5f58a3c42a72f9a6"
+    assert base.results_hash() == "41d92911d6fdb382"
+    # the old vehicles' changed pixels not cut apart: the twenty-fifth round's hash holds,
+    # and with it every earlier one below
+    whole = RefineParams(apart_classes=())
+    assert Config(DetectParams(refine=whole)).results_hash() == "5f58a3c42a72f9a6"
     # the twenty-fifth round's registration shifts off: the twenty-fourth round's hash holds
     unaligned = CorrelateParams(align_shift_px=0.0)
-    assert Config(DetectParams(correlate=unaligned)).results_hash() == "27e71fcf2b40181e"
+    assert (
+        Config(DetectParams(refine=whole, correlate=unaligned)).results_hash() == "27e71fcf2b40181e"
+    )
     reach_only = CorrelateParams(silhouette_edge_threshold=0.0, align_shift_px=0.0)
-    assert Config(DetectParams(correlate=reach_only)).results_hash() == "029b331307b07b3f"
+    assert (
+        Config(DetectParams(refine=whole, correlate=reach_only)).results_hash()
+        == "029b331307b07b3f"
+    )
     no_band = CorrelateParams(silhouette_margin_m=0.0)  # then the outline changes nothing
     assert (
-        Config(DetectParams(correlate=no_band)).results_hash()
+        Config(DetectParams(refine=whole, correlate=no_band)).results_hash()
         == Config(
-            DetectParams(correlate=dataclasses.replace(no_band, silhouette_edge_threshold=0.0))
+            DetectParams(
+                refine=whole, correlate=dataclasses.replace(no_band, silhouette_edge_threshold=0.0)
+            )
         ).results_hash()
     )
     # the earlier rounds' hashes hold with the band as they had it (its reach alone)
     ungated = CorrelateParams(
         second_smallest_gate=0.0, silhouette_edge_threshold=0.0, align_shift_px=0.0
     )
-    assert Config(DetectParams(correlate=ungated)).results_hash() == "1be77a783281f300"
+    assert (
+        Config(DetectParams(refine=whole, correlate=ungated)).results_hash() == "1be77a783281f300"
+    )
     # eq. 5's minimum everywhere (the paper): the nineteenth round's hash holds
     minimum = CorrelateParams(
         second_smallest=False, silhouette_edge_threshold=0.0, align_shift_px=0.0
     )
-    assert Config(DetectParams(correlate=minimum)).results_hash() == "0068d660689c1b69"
+    assert (
+        Config(DetectParams(refine=whole, correlate=minimum)).results_hash() == "0068d660689c1b69"
+    )
     see_through_off = TextureParams(see_through_classes=())
-    nineteenth_off = DetectParams(correlate=minimum, texture=see_through_off)
+    nineteenth_off = DetectParams(refine=whole, correlate=minimum, texture=see_through_off)
     assert Config(nineteenth_off).results_hash() == "d6f5f4c2c16f882a"
     # a switch added off keeps the hash; on, it changes it
     nearer = CorrelateParams(
@@ -170,11 +188,13 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         silhouette_edge_threshold=0.0,
         align_shift_px=0.0,
     )
-    nearer_on = Config(DetectParams(correlate=nearer))
+    nearer_on = Config(DetectParams(refine=whole, correlate=nearer))
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
-    blurred = Config(DetectParams(texture=TextureParams(blur_px=1.5)))
+    blurred = Config(DetectParams(refine=whole, texture=TextureParams(blur_px=1.5)))
     assert blurred.results_hash() not in (base.results_hash(), nearer_on.results_hash())
-    floored = Config(DetectParams(correlate=CorrelateParams(registration_floor_px=2.0)))
+    floored = Config(
+        DetectParams(refine=whole, correlate=CorrelateParams(registration_floor_px=2.0))
+    )
     assert floored.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     log_transfer = Config(DetectParams(appearance=AppearanceParams(transfer="log")))
     assert log_transfer.results_hash() not in (base.results_hash(), nearer_on.results_hash())
@@ -186,6 +206,7 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         spacing_edge_factor=0.0, spacing_edge_min_spacing_m=0.0, spacing_edge_same_role=False
     )
     sixteenth = DetectParams(
+        refine=whole,
         surface=dense_surface,
         zbuffer=ZBufferParams(reach_colour=True),
         texture=see_through_off,

@@ -60,7 +60,7 @@ from streetcd.detect.graphcut import (
 )
 from streetcd.detect.intensity import intensity_change, intensity_codes
 from streetcd.detect.refine import refined_mask
-from streetcd.detect.regions import Region, changed_regions
+from streetcd.detect.regions import Region, changed_regions, cut_apart
 from streetcd.detect.roles import cloud_roles, in_roles, mostly_roleless, useless_classes
 from streetcd.detect.seethrough import see_through_change
 from streetcd.detect.silhouette import GROUND_ROLES, near_depth_hypothesis
@@ -300,6 +300,7 @@ def detect_view(
     lap("graphcut")
     mask = refined_mask(image, cut.mask, params)
     lap("refine")
+    mask = cut_apart(mask, surf.classes, params.refine.apart_classes)
     region_labels, regions = changed_regions(
         mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
     )

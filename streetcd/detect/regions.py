@@ -1,4 +1,5 @@
-"""The changed regions of a mask: 8-connected components, each scored and located in 3D.
+"""The changed regions of a mask: 8-connected components, each scored and located in 3D;
+before them, the mask cut where an old vehicle's changed pixels meet others' (:func:`cut_apart`).
 
 Note: the depth raster is the *old* surface. For an added object the region's 3D position is
 the surface behind it (the wall, the ground), for a removed one the object itself; either
@@ -7,12 +8,15 @@ way it locates the change on the street to within the object's depth.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy import ndimage
 
+from streetcd.detect.boxes import mask_box
+from streetcd.detect.roles import in_roles
 from streetcd.geometry.camera import backproject
 from streetcd.types import Intrinsics, Pose
 
@@ -117,3 +121,50 @@ def changed_regions(
             )
         )
     return labels, regions
+
+
+def cut_apart(mask: np.ndarray, classes: np.ndarray, codes: Sequence[int]) -> np.ndarray:
+    """``mask`` (H, W) bool cut where its pixels on an old surface of the roles ``codes``
+    (``classes`` (H, W) uint8; ``refine.apart_classes``: an old car, a passer-by) meet its
+    pixels on another old surface, so that the two are 8-connected regions apart
+    (:func:`changed_regions`): the former's pixels that touch the latter's are left out (a
+    line one pixel wide). Why: a car gone or a passer-by beside a new pole is then a change
+    object of its own, kept out as a transient, not part of the pole's (issue 17). A pixel
+    without an old surface (class 0) is on the side of the nearest pixel with one in its
+    8-connected component (a gone car's windows, the sky around a new pole). Returns
+    ``mask`` itself when there is nothing to cut, else a new mask."""
+    if not codes:
+        return mask
+    apart = mask & in_roles(classes, codes)
+    if not apart.any():
+        return mask
+    box = mask_box(mask) or np.s_[:, :]  # never None: the apart pixels are the mask's
+    side = _sides(mask[box], apart[box], classes[box] > 0)
+    touching = cv2.dilate((side == 2).view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    out = mask.copy()
+    out[box] &= ~(touching & (side == 1))
+    return out
+
+
+def _sides(mask: np.ndarray, apart: np.ndarray, surfaced: np.ndarray) -> np.ndarray:
+    """(h, w) uint8: 1 where :func:`cut_apart` puts a pixel of ``mask`` on the vehicle's
+    side, 2 on the other side, 0 outside the mask. A pixel with an old surface is on its
+    own side; one without takes the side of the nearest pixel with one in its 8-connected
+    component of ``mask``, or the other side when the component has none."""
+    side = np.where(mask & surfaced, np.where(apart, 1, 2), 0).astype(np.uint8)
+    bare = mask & (side == 0)
+    if bare.any() and side.any():
+        _, component = cv2.connectedComponents(
+            mask.view(np.uint8), connectivity=8, ltype=cv2.CV_32S
+        )
+        _, nearest = cv2.distanceTransformWithLabels(
+            (side == 0).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        # DIST_LABEL_PIXEL numbers the pixels with a side 1, 2, ... in scan order
+        has = side > 0
+        side_of = np.concatenate([[0], side[has]]).astype(np.uint8)
+        component_of = np.concatenate([[0], component[has]])
+        near = nearest[bare]
+        side[bare] = np.where(component_of[near] == component[bare], side_of[near], 2)
+    side[bare & (side == 0)] = 2
+    return side
