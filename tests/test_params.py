@@ -57,6 +57,10 @@ def test_params_are_frozen_and_validated():
         ZBufferParams(tau=1.5)
     with pytest.raises(InputError, match="beta"):
         GraphCutParams(beta=-1)
+    for bad in ([300], ["car"], [True]):
+        with pytest.raises(InputError, match=r"refine.apart_classes .* class codes 0-255"):
+            params_from_dict({"refine": {"apart_classes": bad}})
+    assert params_from_dict({"refine": {"apart_classes": []}}).refine.apart_classes == ()
 
 
 def test_dict_round_trip_and_unknown_keys():
