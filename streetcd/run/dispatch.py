@@ -11,8 +11,12 @@ segment runs, not only during its last batch).
 The end of each queue, ``tail_views`` views, is cut into single-view batches. A worker that
 has run out of its own queue takes the last batch of the longest queue, and a single view
 taken so comes with a crop of its own (the view and its neighbours: a small fraction of the
-segment's, docs/BENCHMARKS.md; the records and masks are the same, checked on 49 views), so
-the workers end within about one view of each other. A queue whose worker is gone is served by the
+segment's, docs/BENCHMARKS.md), so the workers end within about one view of each other. Its
+result is not always the one the segment's crop gives: the detector estimates the cloud's
+point spacing per class from a sample of the crop it is given (:mod:`streetcd.detect.spacing`),
+and on the quick tour's street a view so taken came out 938 pixels different (2026-11-29;
+the records and masks had been the same on 49 views of another street). Left open: see
+docs/DECISIONS.md, "The crop a view is detected on". A queue whose worker is gone is served by the
 others from its front (Dask itself moves the batches that worker held); a worker that joins
 mid-run takes from the back of the longest queue.
 
