@@ -134,6 +134,15 @@ def merged_config(folder: Path, overlay: Path | None, tag: str) -> Path | None:
         return own if own.exists() else None
     base = yaml.safe_load(own.read_text(encoding="utf-8")) if own.exists() else {}
     top = yaml.safe_load(overlay.read_text(encoding="utf-8")) or {}
+    mine = ((base or {}).get("detect") or {}).get("classes")
+    theirs = (top.get("detect") or {}).get("classes")
+    if mine and theirs and theirs != mine:
+        # a whole configs/default.yaml laid over an ASPRS-coded street takes its roles away
+        print(
+            f"warning: {overlay}'s detect.classes replaces {folder.name}'s own class map;"
+            " an overlay should hold the changed settings only",
+            file=sys.stderr,
+        )
     path = folder / f"streetcd-{tag or 'overlay'}.yaml"
     path.write_text(yaml.safe_dump(_deep_merge(base or {}, top)), encoding="utf-8")
     return path

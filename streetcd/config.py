@@ -41,6 +41,16 @@ def _check(cond: bool, name: str, value: Any, rule: str) -> None:
         raise InputError(f"parameter {name} = {value!r} must be {rule}")
 
 
+def _codes(obj: Any, name: str, field_name: str) -> None:
+    """Check that ``obj.<field_name>`` is a list of class codes (integers 0-255, not
+    booleans; a code out of range fails at load, not later in a 256-entry look-up) and store
+    it as a tuple."""
+    values = getattr(obj, field_name)
+    ok = isinstance(values, tuple | list) and all(type(c) is int and 0 <= c <= 255 for c in values)
+    _check(ok, name, list(values) if isinstance(values, tuple | list) else values, "codes 0-255")
+    object.__setattr__(obj, field_name, tuple(values))
+
+
 @dataclass(frozen=True)
 class ZBufferParams:
     """Block-window (eq. 1) and weighted-window (eq. 2–3) z-buffer, paper §3.2."""
@@ -139,9 +149,7 @@ class SurfaceParams:
         ):
             value = getattr(self, name)
             _check(math.isfinite(value) and value >= 0, name, value, ">= 0")
-        codes = tuple(int(c) for c in self.spacing_edge_classes)
-        _check(all(0 <= c <= 255 for c in codes), "spacing_edge_classes", codes, "codes 0-255")
-        object.__setattr__(self, "spacing_edge_classes", codes)
+        _codes(self, "spacing_edge_classes", "spacing_edge_classes")
 
 
 @dataclass(frozen=True)
@@ -208,6 +216,7 @@ class CorrelateParams:
     nearer_scale: float = 0.5  # the test runs at this fraction of the image's resolution
 
     def __post_init__(self) -> None:
+        _codes(self, "low_weight_classes", "low_weight_classes")
         _check(self.n_neighbours >= 1, "n_neighbours", self.n_neighbours, ">= 1")
         _check(self.nearer_weight >= 0, "nearer_weight", self.nearer_weight, ">= 0")
         _check(
@@ -345,6 +354,7 @@ class AppearanceParams:
     intensity_margin_px: float = 12.0
 
     def __post_init__(self) -> None:
+        _codes(self, "appearance.classes", "classes")
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
         _check(
             0 <= self.intensity_same_rgb < self.intensity_differ_rgb,
@@ -388,12 +398,7 @@ class RefineParams:
 
     def __post_init__(self) -> None:
         _check(self.band_px >= 1, "band_px", self.band_px, ">= 1")
-        _check(
-            all(type(c) is int and 0 <= c <= 255 for c in self.apart_classes),
-            "refine.apart_classes",
-            list(self.apart_classes),
-            "class codes 0-255",
-        )
+        _codes(self, "refine.apart_classes", "apart_classes")
         _check(self.iterations >= 1, "iterations", self.iterations, ">= 1")
 
 
@@ -448,6 +453,8 @@ class TextureParams:
     see_through_blur_m: float = 0.04
 
     def __post_init__(self) -> None:
+        _codes(self, "texture.classes", "classes")
+        _codes(self, "texture.see_through_classes", "see_through_classes")
         _check(self.weight >= 0, "texture.weight", self.weight, ">= 0")
         _check(
             0 <= self.min_foreshortening <= 1,

@@ -57,9 +57,20 @@ def test_params_are_frozen_and_validated():
         ZBufferParams(tau=1.5)
     with pytest.raises(InputError, match="beta"):
         GraphCutParams(beta=-1)
-    for bad in ([300], ["car"], [True]):
-        with pytest.raises(InputError, match=r"refine.apart_classes .* class codes 0-255"):
-            params_from_dict({"refine": {"apart_classes": bad}})
+    # every list of class codes: integers 0-255, refused at load with the setting's name
+    lists = [
+        ("refine", "apart_classes"),
+        ("texture", "classes"),
+        ("texture", "see_through_classes"),
+        ("appearance", "classes"),
+        ("correlate", "low_weight_classes"),
+        ("surface", "spacing_edge_classes"),
+    ]
+    for block, key in lists:
+        for bad in ([300], ["car"], [True], 5):
+            with pytest.raises(InputError, match=rf"{key} = .* must be codes 0-255"):
+                params_from_dict({block: {key: bad}})
+        assert getattr(params_from_dict({block: {key: [64]}}), block).__dict__[key] == (64,)
     assert params_from_dict({"refine": {"apart_classes": []}}).refine.apart_classes == ()
 
 
