@@ -9,7 +9,8 @@ from distributed.protocol.serialize import ToPickle
 
 from streetcd.config import Config
 from streetcd.run.dispatch import WorkQueues, split_tail
-from streetcd.run.plan import Batch, ViewTask
+from streetcd.run.plan import Batch, ViewTask, _batches
+from streetcd.run.segments import Segment
 from streetcd.types import Intrinsics, Pose, View
 
 PARAMS = Config()
@@ -67,7 +68,9 @@ def test_a_worker_out_of_work_takes_the_last_single_view_of_the_longest_queue():
     assert [names(b) for b in own if b] == [["A0"], ["A1"], ["A2"], ["A3"]]
     stolen = work.take("w0", live)
     assert stolen is not None and names(stolen) == ["B7"]  # w1 had the most views queued
-    assert stolen.crop_views == ()  # cropped for the view alone, not B's whole segment
+    # detected on its segment's crop, as its owner would have (the spacing estimate reads
+    # the whole crop: docs/DECISIONS.md, "The crop a view is detected on")
+    assert stolen.crop_views == work.queues["w1"][0].crop_views != ()
     assert work.views["w1"] == 7
     # the queue it came from still runs in order, and its owner is told so
     assert work.ahead("w1", own[0])[0] is work.queues["w1"][0]
@@ -104,3 +107,18 @@ def test_a_batch_travels_to_dask_as_one_pickle_not_a_frame_per_pose():
         a.pose.R.tobytes() == b.pose.R.tobytes() and a.pose.t.tobytes() == b.pose.t.tobytes()
         for a, b in zip(back.crop_views, batch.crop_views, strict=True)
     )
+
+
+def test_a_segments_batches_crop_all_its_views_done_or_not():
+    # a night resumed after a kill: one view of six left to do. Its batch still crops the
+    # segment's views and their neighbours, as a clean night's batches do: the detector
+    # estimates the point spacing from the crop it is given (docs/DECISIONS.md, "The crop a
+    # view is detected on"), so a smaller crop would give the view another result
+    views = [view(n) for n in "abcdefg"]  # g: a neighbour in the next segment
+    neighbours = (("b",), ("a", "c"), ("b", "d"), ("c", "e"), ("d", "f"), ("e", "g"))
+    seg = Segment("S", tuple("abcdef"), neighbours, np.zeros((1, 2)), (0, 0, 1, 1), 10.0)
+    store = type("Store", (), {"index": {"generation": 1}})()
+    todo = {"S": [ViewTask(views[2], (views[1], views[3]), "S", "h-c")]}
+    (batch,) = _batches([seg], todo, views, PARAMS, "store", "out", "p", store)
+    assert [t.view.name for t in batch.tasks] == ["c"]
+    assert [v.name for v in batch.crop_views] == list("abcdefg")

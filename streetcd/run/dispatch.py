@@ -9,14 +9,12 @@ first batch of the worker's next segment (``next_segment``: its cloud is cropped
 segment runs, not only during its last batch).
 
 The end of each queue, ``tail_views`` views, is cut into single-view batches. A worker that
-has run out of its own queue takes the last batch of the longest queue, and a single view
-taken so comes with a crop of its own (the view and its neighbours: a small fraction of the
-segment's, docs/BENCHMARKS.md), so the workers end within about one view of each other. Its
-result is not always the one the segment's crop gives: the detector estimates the cloud's
-point spacing per class from a sample of the crop it is given (:mod:`streetcd.detect.spacing`),
-and on the quick tour's street a view so taken came out 938 pixels different (2026-11-29;
-the records and masks had been the same on 49 views of another street). Left open: see
-docs/DECISIONS.md, "The crop a view is detected on". A queue whose worker is gone is served by the
+has run out of its own queue takes the last batch of the longest queue, so the workers end
+within about one view of each other. A view taken so is detected on its segment's crop, as
+its owner would have: the detector estimates the cloud's point spacing from the crop it is
+given (:mod:`streetcd.detect.spacing`), and a crop of the view alone (~15 ms against ~250 ms
+for the segment) gave 938 pixels more or less on the quick tour's street (docs/DECISIONS.md,
+"The crop a view is detected on", 2026-11-29). A queue whose worker is gone is served by the
 others from its front (Dask itself moves the batches that worker held); a worker that joins
 mid-run takes from the back of the longest queue.
 
@@ -121,9 +119,7 @@ class WorkQueues:
         )
         if victim is None:
             return None
-        b = self._pop(victim, self.queues[victim].pop())
-        # a single view of another worker's segment: a crop of its own, not the segment's
-        return dataclasses.replace(b, crop_views=()) if len(b.tasks) == 1 else b
+        return self._pop(victim, self.queues[victim].pop())
 
     def ahead(self, worker: str | None, after: Batch) -> tuple[Batch | None, Batch | None]:
         """What ``worker`` runs after ``after``, from its own queue: (its next batch, the

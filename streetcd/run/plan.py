@@ -251,7 +251,7 @@ def plan_run(
         )
 
     tasks, n_skipped = _view_tasks(segments, views, tile_store, config, skip)
-    batches = _batches(segments, tasks, config, str(store), str(out), phash, tile_store)
+    batches = _batches(segments, tasks, views, config, str(store), str(out), phash, tile_store)
     new_failed = tuple(r for r in failed if not skip(r.view, r.input_hash))
     n_skipped += len(failed) - len(new_failed)
     inputs = {"images": str(images), "poses": str(poses), "store": str(store), "out": str(out)}
@@ -424,22 +424,30 @@ def _view_tasks(
 def _batches(
     segments: Sequence[Segment],
     tasks: dict[str, list[ViewTask]],
+    views: Sequence[View],
     config: Config,
     store: str,
     out: str,
     phash: str,
     tile_store: TileStore,
 ) -> list[Batch]:
-    """Each segment's views to do cut into batches of ``run.batch_size``, in trajectory order."""
+    """Each segment's views to do cut into batches of ``run.batch_size``, in trajectory order,
+    each with the segment's crop views: all its views and their neighbours, done or not.
+
+    Why all of them: the detector estimates the cloud's point spacing from the crop it is
+    given (:mod:`streetcd.detect.spacing`), so a view's result depends on the crop's extent. A
+    night resumed after a kill, or run again with some views done, crops each segment as a
+    clean night does and gives its views the same results (docs/DECISIONS.md, "The crop a
+    view is detected on")."""
     size = config.run.batch_size
+    by_name = {v.name: v for v in views}
     generation = tile_store.index.get("generation")
     identity = store_identity(tile_store)
     batches = []
     for seg in segments:
         todo = tasks[seg.id]
-        crop_views = {t.view.name: t.view for t in todo}
-        crop_views.update({n.name: n for t in todo for n in t.neighbours})
-        shared = tuple(crop_views[n] for n in sorted(crop_views))
+        names = set(seg.views).union(*seg.neighbours)
+        shared = tuple(by_name[n] for n in sorted(names))
         for k in range(0, len(todo), size):
             chunk = tuple(todo[k : k + size])
             batches.append(
