@@ -51,9 +51,11 @@ class Batch:
     """Consecutive views of one segment, processed by one Dask task.
 
     crop_views : the views whose clouds the segment's batches share: every view of the
-        segment still to do, and its neighbours. All batches of a segment carry the same
-        tuple, so a worker crops the segment once and serves its later batches, and the
-        detector's surface cache, from that one cloud (:class:`streetcd.run.worker.WorkerRuntime`).
+        segment, done or not, and its neighbours (a view's result depends on its crop:
+        :func:`_batches`). All batches of a segment carry the same tuple, so a worker crops
+        the segment once and serves its later batches, and the detector's surface cache,
+        from that one cloud (:class:`streetcd.run.worker.WorkerRuntime`); empty: the batch's
+        own views and their neighbours (:func:`streetcd.run.worker.batch_views`).
     store_generation : the tile store's generation at planning, so a long-lived worker
         never reads a store it opened before the last ingest.
     store_id : :func:`store_identity` of the tile store at planning (a store rebuilt at the
