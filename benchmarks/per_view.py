@@ -77,7 +77,7 @@ N_STEPS = 8  # the per-step rows above sum_of_steps
 TIMED_RUNS = ("total", "total_in_a_run")  # whole detect_view calls, timed on their own
 N_IMAGES = 6  # enough that the middle view has 3 overlapping neighbours (4 gave it 2)
 # The quick tour's spacing (24 images over 150 m): 6 images over the generator's default
-# 150 m were 30 m apart, where the texture cue found no pixel both views see alike and
+# 150 m were 30 m apart, where the texture cue found almost no pixel to compare and
 # skipped most of its work, so the benchmark's view was cheaper than the street's
 # (docs/BENCHMARKS.md, 2026-11-29).
 LENGTH_M = N_IMAGES * 150.0 / 24
