@@ -420,9 +420,8 @@ class TextureParams:
     # ... but never wider than this: its cost does not grow with the camera's resolution
     max_work_width_px: int = 1024
     # registration error tolerated (px at REFERENCE_WIDTH_PX): the best NCC over shifts of the
-    # warped neighbour up to this much around its whole-image shift (eq. 5's envelope; 8.0,
-    # twice it, before each neighbour was registered to the view: docs/TUNING.md, 27th round)
-    registration_tolerance_px: float = 4.0
+    # warped neighbour up to this much (twice eq. 5's envelope: a window's texture needs it)
+    registration_tolerance_px: float = 8.0
     # our addition: the whole warped neighbour is first aligned by the shift (up to this, px at
     # REFERENCE_WIDTH_PX) that correlates best with the view, then the windows search around it:
     # pose error beyond the window's tolerance is mostly one shift per view (0: no alignment)

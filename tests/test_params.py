@@ -137,9 +137,7 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
 def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
-    # so it must come from a change of the results (2026-11-29, the twenty-seventh round: the
-    # texture cue's search of 4 px at 4000 wide around each neighbour's shift; 41d92911d6fdb382
-    # before, from the twenty-sixth round: an
+    # so it must come from a change of the results (2026-11-29, the twenty-sixth round: an
     # old vehicle's changed pixels cut apart from the others' (refine.apart_classes);
     # 5f58a3c42a72f9a6 before, from the twenty-fourth round: the
     # near-depth band ends at the near object's outline in the view, and from the twenty-fifth
@@ -157,34 +155,27 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # railing's foot; b391d095e4e6e3b2 before that, from the sixteenth round: the rules of the
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "46ce718555fd5d33"
-    # the texture cue's search of the twenty-sixth round (8 px at 4000 wide), and every
-    # pinned hash below with it
-    wide = TextureParams(registration_tolerance_px=8.0)
-    assert Config(DetectParams(texture=wide)).results_hash() == "41d92911d6fdb382"
+    assert base.results_hash() == "41d92911d6fdb382"
     # the old vehicles' changed pixels not cut apart: the twenty-fifth round's hash holds,
     # and with it every earlier one below
     whole = RefineParams(apart_classes=())
-    assert Config(DetectParams(refine=whole, texture=wide)).results_hash() == "5f58a3c42a72f9a6"
+    assert Config(DetectParams(refine=whole)).results_hash() == "5f58a3c42a72f9a6"
     # the twenty-fifth round's registration shifts off: the twenty-fourth round's hash holds
     unaligned = CorrelateParams(align_shift_px=0.0)
     assert (
-        Config(DetectParams(refine=whole, texture=wide, correlate=unaligned)).results_hash()
-        == "27e71fcf2b40181e"
+        Config(DetectParams(refine=whole, correlate=unaligned)).results_hash() == "27e71fcf2b40181e"
     )
     reach_only = CorrelateParams(silhouette_edge_threshold=0.0, align_shift_px=0.0)
     assert (
-        Config(DetectParams(refine=whole, texture=wide, correlate=reach_only)).results_hash()
+        Config(DetectParams(refine=whole, correlate=reach_only)).results_hash()
         == "029b331307b07b3f"
     )
     no_band = CorrelateParams(silhouette_margin_m=0.0)  # then the outline changes nothing
     assert (
-        Config(DetectParams(refine=whole, texture=wide, correlate=no_band)).results_hash()
+        Config(DetectParams(refine=whole, correlate=no_band)).results_hash()
         == Config(
             DetectParams(
-                refine=whole,
-                texture=wide,
-                correlate=dataclasses.replace(no_band, silhouette_edge_threshold=0.0),
+                refine=whole, correlate=dataclasses.replace(no_band, silhouette_edge_threshold=0.0)
             )
         ).results_hash()
     )
@@ -193,18 +184,16 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         second_smallest_gate=0.0, silhouette_edge_threshold=0.0, align_shift_px=0.0
     )
     assert (
-        Config(DetectParams(refine=whole, texture=wide, correlate=ungated)).results_hash()
-        == "1be77a783281f300"
+        Config(DetectParams(refine=whole, correlate=ungated)).results_hash() == "1be77a783281f300"
     )
     # eq. 5's minimum everywhere (the paper): the nineteenth round's hash holds
     minimum = CorrelateParams(
         second_smallest=False, silhouette_edge_threshold=0.0, align_shift_px=0.0
     )
     assert (
-        Config(DetectParams(refine=whole, texture=wide, correlate=minimum)).results_hash()
-        == "0068d660689c1b69"
+        Config(DetectParams(refine=whole, correlate=minimum)).results_hash() == "0068d660689c1b69"
     )
-    see_through_off = TextureParams(see_through_classes=(), registration_tolerance_px=8.0)
+    see_through_off = TextureParams(see_through_classes=())
     nineteenth_off = DetectParams(refine=whole, correlate=minimum, texture=see_through_off)
     assert Config(nineteenth_off).results_hash() == "d6f5f4c2c16f882a"
     # a switch added off keeps the hash; on, it changes it
@@ -214,18 +203,12 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         silhouette_edge_threshold=0.0,
         align_shift_px=0.0,
     )
-    nearer_on = Config(DetectParams(refine=whole, texture=wide, correlate=nearer))
+    nearer_on = Config(DetectParams(refine=whole, correlate=nearer))
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
-    blurred = Config(
-        DetectParams(
-            refine=whole, texture=TextureParams(blur_px=1.5, registration_tolerance_px=8.0)
-        )
-    )
+    blurred = Config(DetectParams(refine=whole, texture=TextureParams(blur_px=1.5)))
     assert blurred.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     floored = Config(
-        DetectParams(
-            refine=whole, texture=wide, correlate=CorrelateParams(registration_floor_px=2.0)
-        )
+        DetectParams(refine=whole, correlate=CorrelateParams(registration_floor_px=2.0))
     )
     assert floored.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     log_transfer = Config(DetectParams(appearance=AppearanceParams(transfer="log")))
@@ -250,9 +233,7 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     before = dataclasses.replace(
         sixteenth,
         classes=ClassMap(infer="off"),
-        texture=TextureParams(
-            min_foreshortening=0.0, see_through_classes=(), registration_tolerance_px=8.0
-        ),
+        texture=TextureParams(min_foreshortening=0.0, see_through_classes=()),
     )
     assert Config(before).results_hash() == "5d2d95da524a50c4"
     texture_off = Config(DetectParams(texture=TextureParams(enabled=False)))
