@@ -583,11 +583,6 @@ def _best_ncc(
     ``radius`` (a square) around ``offset`` (dy, dx), the best at each pixel; textured where
     any shift is.
 
-    Per shift, one numba pass writes the six products whose window sums the NCC needs
-    (1, a, a², b, b², ab over the pixels valid in both), one six-channel box filter sums
-    them, and a second pass keeps the best NCC: the same numbers as :func:`local_ncc`
-    shift by shift (up to float32 rounding), without its dozen full-size temporaries.
-
     Only the box of the ``valid`` pixels is computed: every product outside it is 0 and the
     NCC is wanted only inside it, so the box filters over the box alone, with the image's
     zero border, sum the same values (often a small part: the warped neighbours' valid
@@ -609,7 +604,11 @@ def _best_ncc_in(
     radius: int,
     offset: tuple[int, int],
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_best_ncc` on arrays of any size (its per-shift passes)."""
+    """:func:`_best_ncc`'s per-shift passes over the whole arrays given. Per shift, one numba
+    pass writes the six products whose window sums the NCC needs (1, a, a², b, b², ab over
+    the pixels valid in both), one six-channel box filter sums them, and a second pass keeps
+    the best NCC: the same numbers as :func:`local_ncc` shift by shift (up to float32
+    rounding), without its dozen full-size temporaries."""
     a = np.ascontiguousarray(a, np.float32)
     b = np.ascontiguousarray(b, np.float32)
     valid = np.ascontiguousarray(valid, np.bool_)
