@@ -19,6 +19,9 @@ warm-up (numba compilation, caches), and the median of every step is printed:
 * superpixels (class-aware SLIC, eq. 10–11) and graph cut (eq. 6–9, speckle filter);
 * refine: the regions' pixel outlines by colour (:mod:`streetcd.detect.refine`) and the speckle
   filter again;
+* regions: the mask cut apart where old vehicles' pixels meet others', its 8-connected
+  regions located in 3D (:mod:`streetcd.detect.regions`) and how far in front of the old
+  surface each stands (:mod:`streetcd.detect.locate`);
 * total: :func:`detect_view` end to end (its own run, not the sum), every surface built;
 * total_in_a_run: the same call as the flow makes it, with the neighbours' surfaces already
   built (each image's surface is built once per run and kept while its segment is detected,
@@ -69,11 +72,12 @@ STEPS = (
     "texture",
     "graph_cut",
     "refine",
+    "regions",
     "sum_of_steps",
     "total",
     "total_in_a_run",
 )
-N_STEPS = 8  # the per-step rows above sum_of_steps
+N_STEPS = 9  # the per-step rows above sum_of_steps
 TIMED_RUNS = ("total", "total_in_a_run")  # whole detect_view calls, timed on their own
 N_IMAGES = 6  # enough that the middle view has 3 overlapping neighbours (4 gave it 2)
 # The quick tour's spacing (24 images over 150 m): 6 images over the generator's default
@@ -126,6 +130,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.detect.chain import (
         _aligned,
         _greys,
+        _located,
+        _locating,
         _neighbour,
         _outline_grey,
         _raw_change_at_cell_scale,
@@ -138,6 +144,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.detect.correlate import stretch_lut
     from streetcd.detect.graphcut import cut_changes, node_energy, superpixels
     from streetcd.detect.refine import refined_mask
+    from streetcd.detect.regions import changed_regions, cut_apart
     from streetcd.detect.surface import (
         _point_spacing,
         _zbuffer_params_for,
@@ -214,18 +221,28 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     if params.texture.enabled and greys is not None:
         texture = _texture(*greys, surf, local, params, working)
         change = np.maximum(change, np.float32(params.texture.weight) * texture)
+    t_texture = time.perf_counter()
+    locating = _locating(image, surf, local, seen, params)  # where detect_view makes it
     t4 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
     t5 = time.perf_counter()
-    refined_mask(image, cut.mask, params)
+    mask = refined_mask(image, cut.mask, params)
     t6 = time.perf_counter()
+    mask = cut_apart(mask, surf.classes, params.refine.apart_classes)
+    region_labels, regions = changed_regions(
+        mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
+    )
+    if locating is not None and regions:
+        _located(regions, region_labels, locating, local, params)
+    t7 = time.perf_counter()
     t["correlate"] = t1 - t0
     t["superpixels"] = t2 - t1
     t["appearance"] = t3 - t2
-    t["texture"] = t4 - t3
+    t["texture"] = t_texture - t3
     t["graph_cut"] = t5 - t4
     t["refine"] = t6 - t5
+    t["regions"] = t7 - t6 + t4 - t_texture  # the working set is made before the cut
     t["sum_of_steps"] = sum(t[s] for s in STEPS[:N_STEPS])
     return t
 

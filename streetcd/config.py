@@ -402,6 +402,42 @@ class RefineParams:
         _check(self.iterations >= 1, "iterations", self.iterations, ">= 1")
 
 
+@dataclass(frozen=True)
+class LocateParams:
+    """[ours] Where each changed region stands (:mod:`streetcd.detect.locate`; issue 17):
+    the depth, as a fraction of the old surface's behind it, at which the view and its
+    neighbours agree best. The change objects place an added thing there (a car parked since
+    the scan stands on the road, not on the façade behind it). ``enabled = False``: regions
+    are located on the old surface alone."""
+
+    enabled: bool = True
+    min_fraction: float = 0.1  # the nearest depth tried, as a fraction of the old surface's
+    steps: int = 19  # fractions from min_fraction to 1, evenly (0.05 apart by default)
+    min_gain: float = 0.03  # the median colour distance must drop this much below the old surface's
+    min_pixels: int = 50  # pixels (at the working scale) seen by a neighbour, at least
+    window_px: int = 5  # colours averaged over this square at the working scale
+    scale: float = 0.25  # fraction of the image's resolution it runs at ...
+    max_work_width_px: int = 512  # ... but never wider than this (its cost at 12 MP)
+    max_samples: int = 1500  # on at most this many pixels a region (evenly spread)
+
+    def __post_init__(self) -> None:
+        _check(0 < self.min_fraction < 1, "min_fraction", self.min_fraction, "in (0, 1)")
+        _check(self.steps >= 3, "steps", self.steps, ">= 3")
+        _check(0 <= self.min_gain <= 1, "min_gain", self.min_gain, "in [0, 1]")
+        _check(self.min_pixels >= 1, "min_pixels", self.min_pixels, ">= 1")
+        _check(self.window_px >= 1, "window_px", self.window_px, ">= 1")
+        _check(0 < self.scale <= 1, "scale", self.scale, "in (0, 1]")
+        _check(self.max_work_width_px >= 16, "max_work_width_px", self.max_work_width_px, ">= 16")
+        _check(
+            self.max_samples >= self.min_pixels, "max_samples", self.max_samples, ">= min_pixels"
+        )
+
+    def fractions(self) -> tuple[float, ...]:
+        """The depth fractions tried, increasing, ending at 1 (the old surface)."""
+        step = (1.0 - self.min_fraction) / (self.steps - 1)
+        return tuple(self.min_fraction + i * step for i in range(self.steps - 1)) + (1.0,)
+
+
 SEE_THROUGH = (classes.RAILING,)  # the roles one sees through: railings and fences
 
 
@@ -560,6 +596,7 @@ class DetectParams:
     appearance: AppearanceParams = field(default_factory=AppearanceParams)
     refine: RefineParams = field(default_factory=RefineParams)
     texture: TextureParams = field(default_factory=TextureParams)
+    locate: LocateParams = field(default_factory=LocateParams)  # [ours] issue 17
     classes: ClassMap = field(default_factory=ClassMap)  # [ours] the cloud's codes → roles
     max_range_m: float = 60.0  # points farther than this from the camera are ignored
 
@@ -736,6 +773,8 @@ class Config:
             del detect["graphcut"]["energy_of_mean"]
         if not self.detect.refine.apart_classes:  # the mask's components: older hashes hold
             del detect["refine"]["apart_classes"]
+        if not self.detect.locate.enabled:  # regions on the old surface alone: older hashes hold
+            del detect["locate"]
         if self.detect.appearance.transfer == "linear":  # Reinhard's: older hashes hold
             del detect["appearance"]["transfer"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
@@ -774,6 +813,7 @@ _NESTED = {
         AppearanceParams,
         RefineParams,
         TextureParams,
+        LocateParams,
         ClassMap,
         DetectParams,
         SegmentParams,

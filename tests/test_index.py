@@ -1,5 +1,6 @@
 """The change index: schema, idempotent batch writes, rollback, R*Trees, canonical dumps."""
 
+import dataclasses
 import os
 import sqlite3
 
@@ -8,7 +9,7 @@ import pytest
 
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError
 from streetcd.run.segments import Segment
-from streetcd.store.index import ChangeIndex, canonical_dump
+from streetcd.store.index import SCHEMA_VERSION, ChangeIndex, canonical_dump
 from streetcd.store.records import RegionRecord, ViewRecord
 
 E0, N0 = 372_000.0, 143_000.0
@@ -247,6 +248,44 @@ def test_the_lock_also_keeps_out_a_second_run_of_the_same_process(tmp_path):
             pass
     with run_lock(index):
         pass
+
+
+def test_a_schema_4_index_is_read_as_it_is_and_migrated_when_written(tmp_path):
+    """Schema 5 adds regions.depth_fraction: a reader never asks for it, so a schema-4 file
+    is read untouched; opened for writing it gains the column (NULL: not measured)."""
+    path = tmp_path / "change_index.sqlite"
+    region = RegionRecord(1, 10, 0.5, (1.0, 2.0, 3.0), (0.0, 1.0, 2.0), (2.0, 3.0, 4.0), 6)
+    flagged = ViewRecord("a.jpg", "h", "p", None, "done", flagged=True, score=0.5)
+    with ChangeIndex(path) as idx:
+        idx.publish("r", [dataclasses.replace(flagged, regions=(region,))])
+    con = sqlite3.connect(path)
+    con.executescript(
+        "ALTER TABLE regions DROP COLUMN depth_fraction;"
+        " UPDATE meta SET value = '4' WHERE key = 'schema_version';"
+    )
+    con.close()
+    before = path.read_bytes()
+    with ChangeIndex(path, readonly=True) as idx:
+        (row,) = idx.query()
+        assert row.regions == (region,)
+    assert path.read_bytes() == before
+    with ChangeIndex(path) as idx:
+        assert idx.conn.execute("SELECT depth_fraction FROM regions").fetchall()[0][0] is None
+        idx.publish(
+            "r2",
+            [
+                dataclasses.replace(
+                    flagged,
+                    view="b.jpg",
+                    regions=(dataclasses.replace(region, depth_fraction=0.5),),
+                )
+            ],
+        )
+        got = idx.conn.execute("SELECT depth_fraction FROM regions ORDER BY id").fetchall()
+        assert [g[0] for g in got] == [None, 0.5]
+        assert [r.regions[0].depth_fraction for r in idx.query()] == [None, 0.5]
+    with ChangeIndex(path, readonly=True) as idx:
+        assert idx._meta("schema_version") == SCHEMA_VERSION == "5"
 
 
 def test_an_index_of_an_older_schema_is_refused_and_left_untouched(tmp_path):

@@ -460,6 +460,70 @@ def test_an_object_whose_lines_of_sight_meet_over_the_road_is_a_transient(tmp_pa
     assert thing["kind"] == "unknown" and thing["transient"] is None
 
 
+SPOT = np.array([E0 + 57.0, FACADE_Y, 102.0])  # where the street's last two views see a car
+
+
+def _cabin_regions(fractions):
+    """The regions of the two views that see SPOT, on that one spot of the façade (as where
+    each sees a different part of a parked car: no parallax between them, so the meeting of
+    their lines of sight tells nothing), with the depth fractions ``fractions`` (None: not
+    measured) at which each view and its neighbours agree."""
+
+    def regions_of(v):
+        names = seers(SPOT)
+        if v.name not in names:
+            return []
+        i = names.index(v.name)
+        half = np.array([0.3, 0.05, 0.3])
+        c = SPOT + np.array([0.05 * i, 0.0, 0.0])
+        return [
+            RegionRecord(
+                1,
+                4000,
+                0.8,
+                tuple(c),
+                tuple(c - half),
+                tuple(c + half),
+                C.BUILDING,
+                0,
+                fractions[i],
+            )
+        ]
+
+    return regions_of
+
+
+def test_an_object_whose_regions_stand_on_the_road_is_a_transient(tmp_path):
+    """Cameras 3 m apart, 12 m from the façade: at a depth fraction of 0.45 the two regions
+    stand 1.65 m apart (they agree), 5.4 m from the cameras, over the road (y within 2.5 m
+    of the car's); on the façade they would be on the sidewalk. Within a metre of the kerb
+    they could be a railing as well."""
+    assert len(seers(SPOT)) == 2
+
+    def road_near_the_car(x, y):
+        return C.ROAD if abs(y - CAR[1]) < 2.5 else C.GROUND
+
+    def road_up_to(kerb_y):  # the regions stand at y = N0 + 6.4
+        return lambda x, y: C.ROAD if y < kerb_y else C.GROUND
+
+    cases = {
+        "both on the road": ((0.45, 0.45), road_near_the_car, "stands on the road (where"),
+        "one measured": ((0.45, None), road_near_the_car, "stands on the road (where"),
+        "none measured": ((None, None), road_near_the_car, None),
+        "on the sidewalk": ((0.45, 0.45), lambda x, y: C.GROUND, None),
+        "half a metre from the kerb": ((0.45, 0.45), road_up_to(N0 + 6.9), None),
+        "a metre and a half from it": ((0.45, 0.45), road_up_to(N0 + 7.9), "stands on the road"),
+        "in front of the façade": ((0.95, 0.95), road_near_the_car, None),
+        "6 m apart: they disagree": ((0.45, 0.95), road_near_the_car, None),
+    }
+    for k, (fractions, ground, want) in enumerate(cases.values()):
+        publish(tmp_path / f"{k}.sqlite", _cabin_regions(fractions), ground)
+        (thing,) = list_objects(tmp_path / f"{k}.sqlite")
+        got = thing["transient"]
+        assert (got is None) if want is None else got.startswith(want), (fractions, got)
+        assert thing["kind"] == "unknown"
+
+
 def test_a_region_chained_to_a_change_whose_line_of_sight_disagrees_is_split_off(tmp_path):
     """The views that see the new box each have its region on the façade; a view further
     on has a region of something else (a car parked along the street) on the façade just

@@ -11,6 +11,7 @@ from streetcd.config import (
     CorrelateParams,
     DetectParams,
     GraphCutParams,
+    LocateParams,
     RefineParams,
     RunParams,
     SegmentParams,
@@ -137,7 +138,9 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
 def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
-    # so it must come from a change of the results (2026-11-29, the twenty-sixth round: an
+    # so it must come from a change of the results (2026-11-29, the twenty-eighth round: each
+    # region's depth fraction (detect.locate), which the change objects read;
+    # 41d92911d6fdb382 before, from the twenty-sixth round: an
     # old vehicle's changed pixels cut apart from the others' (refine.apart_classes);
     # 5f58a3c42a72f9a6 before, from the twenty-fourth round: the
     # near-depth band ends at the near object's outline in the view, and from the twenty-fifth
@@ -155,27 +158,33 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # railing's foot; b391d095e4e6e3b2 before that, from the sixteenth round: the rules of the
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "41d92911d6fdb382"
+    assert base.results_hash() == "50c1033411893261"
+    # the regions not located: the twenty-sixth round's hash holds
+    unlocated = LocateParams(enabled=False)
+    assert Config(DetectParams(locate=unlocated)).results_hash() == "41d92911d6fdb382"
     # the old vehicles' changed pixels not cut apart: the twenty-fifth round's hash holds,
-    # and with it every earlier one below
+    # and with it every earlier one below (a region's depth is not in them: off below)
     whole = RefineParams(apart_classes=())
-    assert Config(DetectParams(refine=whole)).results_hash() == "5f58a3c42a72f9a6"
+    assert Config(DetectParams(refine=whole, locate=unlocated)).results_hash() == "5f58a3c42a72f9a6"
     # the twenty-fifth round's registration shifts off: the twenty-fourth round's hash holds
     unaligned = CorrelateParams(align_shift_px=0.0)
     assert (
-        Config(DetectParams(refine=whole, correlate=unaligned)).results_hash() == "27e71fcf2b40181e"
+        Config(DetectParams(refine=whole, locate=unlocated, correlate=unaligned)).results_hash()
+        == "27e71fcf2b40181e"
     )
     reach_only = CorrelateParams(silhouette_edge_threshold=0.0, align_shift_px=0.0)
     assert (
-        Config(DetectParams(refine=whole, correlate=reach_only)).results_hash()
+        Config(DetectParams(refine=whole, locate=unlocated, correlate=reach_only)).results_hash()
         == "029b331307b07b3f"
     )
     no_band = CorrelateParams(silhouette_margin_m=0.0)  # then the outline changes nothing
     assert (
-        Config(DetectParams(refine=whole, correlate=no_band)).results_hash()
+        Config(DetectParams(refine=whole, locate=unlocated, correlate=no_band)).results_hash()
         == Config(
             DetectParams(
-                refine=whole, correlate=dataclasses.replace(no_band, silhouette_edge_threshold=0.0)
+                refine=whole,
+                locate=unlocated,
+                correlate=dataclasses.replace(no_band, silhouette_edge_threshold=0.0),
             )
         ).results_hash()
     )
@@ -184,17 +193,21 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         second_smallest_gate=0.0, silhouette_edge_threshold=0.0, align_shift_px=0.0
     )
     assert (
-        Config(DetectParams(refine=whole, correlate=ungated)).results_hash() == "1be77a783281f300"
+        Config(DetectParams(refine=whole, locate=unlocated, correlate=ungated)).results_hash()
+        == "1be77a783281f300"
     )
     # eq. 5's minimum everywhere (the paper): the nineteenth round's hash holds
     minimum = CorrelateParams(
         second_smallest=False, silhouette_edge_threshold=0.0, align_shift_px=0.0
     )
     assert (
-        Config(DetectParams(refine=whole, correlate=minimum)).results_hash() == "0068d660689c1b69"
+        Config(DetectParams(refine=whole, locate=unlocated, correlate=minimum)).results_hash()
+        == "0068d660689c1b69"
     )
     see_through_off = TextureParams(see_through_classes=())
-    nineteenth_off = DetectParams(refine=whole, correlate=minimum, texture=see_through_off)
+    nineteenth_off = DetectParams(
+        refine=whole, locate=unlocated, correlate=minimum, texture=see_through_off
+    )
     assert Config(nineteenth_off).results_hash() == "d6f5f4c2c16f882a"
     # a switch added off keeps the hash; on, it changes it
     nearer = CorrelateParams(
@@ -203,12 +216,16 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         silhouette_edge_threshold=0.0,
         align_shift_px=0.0,
     )
-    nearer_on = Config(DetectParams(refine=whole, correlate=nearer))
+    nearer_on = Config(DetectParams(refine=whole, locate=unlocated, correlate=nearer))
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
-    blurred = Config(DetectParams(refine=whole, texture=TextureParams(blur_px=1.5)))
+    blurred = Config(
+        DetectParams(refine=whole, locate=unlocated, texture=TextureParams(blur_px=1.5))
+    )
     assert blurred.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     floored = Config(
-        DetectParams(refine=whole, correlate=CorrelateParams(registration_floor_px=2.0))
+        DetectParams(
+            refine=whole, locate=unlocated, correlate=CorrelateParams(registration_floor_px=2.0)
+        )
     )
     assert floored.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     log_transfer = Config(DetectParams(appearance=AppearanceParams(transfer="log")))
@@ -222,6 +239,7 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     )
     sixteenth = DetectParams(
         refine=whole,
+        locate=unlocated,
         surface=dense_surface,
         zbuffer=ZBufferParams(reach_colour=True),
         texture=see_through_off,

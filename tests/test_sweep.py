@@ -120,9 +120,9 @@ def test_trying_the_nearer_depths_on_the_packed_candidates_equals_the_whole_rast
     view = blur(_render(0.0, True))
     nbs = [Neighbour(blur(_render(x, True)), depth, INTR, _pose(x)) for x in (-1.0, 1.0)]
     rays = camera_rays(INTR)
-    old = sweep._worst_difference(view, nbs, depth, rays, _pose(0.0), 0.3)
+    old = sweep.worst_difference(view, nbs, depth, rays, _pose(0.0), 0.3)
     near = np.fmin.reduce(
-        [sweep._worst_difference(view, nbs, depth * f, rays, _pose(0.0), 0.3) for f in fractions],
+        [sweep.worst_difference(view, nbs, depth * f, rays, _pose(0.0), 0.3) for f in fractions],
         axis=0,
     )
     with np.errstate(invalid="ignore"):

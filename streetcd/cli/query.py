@@ -51,7 +51,8 @@ ViewRow = namedtuple(
     "center regions captured_at image",
 )
 RegionRow = namedtuple(
-    "RegionRow", "label pixels score centroid bbox_min bbox_max dominant_class foot_class"
+    "RegionRow",
+    "label pixels score centroid bbox_min bbox_max dominant_class foot_class depth_fraction",
 )
 SegmentTuple = namedtuple("SegmentTuple", "segment_id n_views length_m bbox polyline")
 

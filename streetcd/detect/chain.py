@@ -59,6 +59,7 @@ from streetcd.detect.graphcut import (
     superpixels,
 )
 from streetcd.detect.intensity import intensity_change, intensity_codes
+from streetcd.detect.locate import Working, region_depth_fractions, working_set
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions, cut_apart
 from streetcd.detect.roles import cloud_roles, in_roles, mostly_roleless, useless_classes
@@ -289,6 +290,9 @@ def detect_view(
         nearer = _nearer(image, surf, local, seen, params)
         fused = np.maximum(fused, np.float32(params.correlate.nearer_weight) * nearer)
         lap("nearer")
+    # where the regions stand is measured after the cut, on the view and neighbours made
+    # small now: their full images (~250 MB at 12 MP) go before the graph cut, as before it
+    locating = _locating(image, surf, local, seen, params)
     seen.clear()
     labels = None
     if params.graphcut.energy_of_mean:  # eq. 7 of each superpixel's mean raw change
@@ -304,6 +308,8 @@ def detect_view(
     region_labels, regions = changed_regions(
         mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
     )
+    if locating is not None and regions:
+        regions = _located(regions, region_labels, locating, local, params)
     lap("regions")
     score = max((r.score for r in regions), default=0.0)
     return DetectionResult(
@@ -498,6 +504,53 @@ def _see_through(
         params.correlate.occlusion_tolerance_m,
         close_px,
     )
+
+
+def _locating(
+    image: np.ndarray,
+    surf: ViewSurface,
+    local: View,
+    seen: Sequence[NeighbourView],
+    params: DetectParams,
+) -> Working | None:
+    """The view and its neighbours at the size where the regions' depths are measured
+    (:func:`streetcd.detect.locate.working_set`); None when that is off or no neighbour."""
+    lp = params.locate
+    if not lp.enabled:
+        return None
+    return working_set(
+        image,
+        surf.depth,
+        local.intrinsics,
+        seen,
+        window_px=lp.window_px,
+        scale=lp.scale,
+        max_work_px=lp.max_work_width_px,
+        percentiles=params.correlate.stretch_percentiles,
+    )
+
+
+def _located(
+    regions: list[Region],
+    region_labels: np.ndarray,
+    working: Working,
+    local: View,
+    params: DetectParams,
+) -> list[Region]:
+    """The regions with their depth fractions (:mod:`streetcd.detect.locate`)."""
+    lp = params.locate
+    fractions = region_depth_fractions(
+        working,
+        region_labels,
+        len(regions),
+        local.pose,
+        fractions=lp.fractions(),
+        min_gain=lp.min_gain,
+        min_pixels=lp.min_pixels,
+        max_samples=lp.max_samples,
+        occlusion_tolerance_m=params.correlate.occlusion_tolerance_m,
+    )
+    return [replace(r, depth_fraction=float(f)) for r, f in zip(regions, fractions, strict=True)]
 
 
 def _nearer(

@@ -38,6 +38,10 @@ class Region:
     the region (:data:`FOOT_BAND`), column by column: what the changed thing stands on or
     in front of, e.g. the road under the flagged cabin of a car parked since the scan,
     whose body hides the road (0 = none).
+    depth_fraction : how far the change stands in front of the old surface, as a fraction of
+    the camera depth of the surface behind it (:mod:`streetcd.detect.locate`): the change
+    itself is at ``C + depth_fraction · (centroid − C)`` for the camera centre ``C``; NaN
+    when not measured or the old surface explains the region as well.
     """
 
     label: int
@@ -48,6 +52,7 @@ class Region:
     bbox_max: np.ndarray
     dominant_class: int
     foot_class: int = 0
+    depth_fraction: float = float("nan")
 
 
 FOOT_BAND = 0.03  # the band below a region that foot_class looks at, in image heights

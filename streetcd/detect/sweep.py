@@ -93,18 +93,18 @@ def nearer_depth_change(
         )
         for img, dep, intr, pose, holes in neighbours
     ]
-    at_old = _worst_difference(view, nbs, depth_s, rays, pose_p, occlusion_tolerance_m)
+    at_old = worst_difference(view, nbs, depth_s, rays, pose_p, occlusion_tolerance_m)
     # Only a pixel the old surface explains worse than the margin can gain: the nearer
     # depths are tried on those alone, packed into rows (about a third of a street view's
     # pixels; the result is the same as on the whole raster).
     todo = np.flatnonzero(np.nan_to_num(at_old, nan=0.0).ravel() > margin)
     if todo.size == 0:
         return np.zeros((h, w), np.float32)
-    packed = [_packed(a, todo) for a in (depth_s, rays, view)]
-    best_near = np.full(packed[0].shape, np.inf, np.float32)
+    depth_t, rays_t, view_t = (packed(a, todo) for a in (depth_s, rays, view))
+    best_near = np.full(depth_t.shape, np.inf, np.float32)
     for f in fractions:
-        nearer = packed[0] * np.float32(f)
-        d = _worst_difference(packed[2], nbs, nearer, packed[1], pose_p, occlusion_tolerance_m)
+        nearer = depth_t * np.float32(f)
+        d = worst_difference(view_t, nbs, nearer, rays_t, pose_p, occlusion_tolerance_m)
         np.fmin(best_near, d, out=best_near)
     best = best_near.ravel()[: todo.size]
     gain = at_old.ravel()[todo] - best
@@ -113,17 +113,18 @@ def nearer_depth_change(
     return cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
-def _worst_difference(
+def worst_difference(
     view: np.ndarray,
     neighbours: Sequence[Neighbour],
     depth: np.ndarray,
     rays: np.ndarray,
     pose_p: Pose,
     occlusion_tolerance_m: float,
+    min_seen: int = 2,
 ) -> np.ndarray:
     """(H, W) float32: the largest colour distance between ``view`` and the neighbours
     sampled at ``depth`` along ``rays``, over the neighbours that see the point; NaN where
-    fewer than two do (or no depth)."""
+    fewer than ``min_seen`` do (or no depth)."""
     worst = np.zeros(depth.shape, np.float32)
     seen = np.zeros(depth.shape, np.uint8)
     for nb in neighbours:
@@ -131,14 +132,14 @@ def _worst_difference(
         d = color_distance(view, warped)
         np.maximum(worst, d, out=worst, where=valid)
         seen += valid
-    worst[seen < 2] = np.nan
+    worst[seen < min_seen] = np.nan
     return worst
 
 
 PACK_WIDTH = 4096  # OpenCV's remap takes rasters under 32,767 pixels a side
 
 
-def _packed(a: np.ndarray, index: np.ndarray) -> np.ndarray:
+def packed(a: np.ndarray, index: np.ndarray) -> np.ndarray:
     """The pixels ``index`` (flat, into the first two axes) of ``a`` (H, W[, C]) as a raster of
     ``PACK_WIDTH`` columns (the last row padded with NaN or zeros): (R, PACK_WIDTH[, C])."""
     flat = a.reshape(-1, *a.shape[2:])[index]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import threading
 import time
 import traceback
@@ -542,6 +543,7 @@ def region_record(g: Region, origin: np.ndarray) -> RegionRecord:
         hi,
         int(g.dominant_class),
         int(g.foot_class),
+        float(g.depth_fraction) if math.isfinite(g.depth_fraction) else None,
     )
 
 

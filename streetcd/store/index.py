@@ -49,7 +49,10 @@ if TYPE_CHECKING:
 
     from streetcd.store.records import FlaggedRow, RegionRecord, SegmentRow, ViewRecord
 
-SCHEMA_VERSION = "4"
+SCHEMA_VERSION = "5"
+# Older schemas this one reads as they are and migrates when opened for writing: each adds
+# columns a reader of the older file never asks for (version 5: regions.depth_fraction).
+MIGRATIONS = {"4": ("ALTER TABLE regions ADD COLUMN depth_fraction REAL",)}
 # ChangeIndex.query's orders, by its ``sort``: time is the capture's (else the detection's)
 QUERY_ORDER = {
     None: "f.segment_id, f.view",
@@ -124,6 +127,7 @@ CREATE TABLE IF NOT EXISTS regions (
     max_x REAL, max_y REAL, max_z REAL,
     dominant_class INTEGER NOT NULL,
     foot_class INTEGER NOT NULL DEFAULT 0,  -- old cloud's class behind the lowest pixels
+    depth_fraction REAL,  -- where the change stands, a fraction of the old surface's depth (NULL: unknown)
     UNIQUE (flagged_id, label)
 );
 CREATE INDEX IF NOT EXISTS regions_flagged ON regions(flagged_id);
@@ -228,15 +232,19 @@ class ChangeIndex:
         self.conn.row_factory = sqlite3.Row
         try:
             version = self._version()
-            if version is not None and version != SCHEMA_VERSION:
+            if version is not None and version != SCHEMA_VERSION and version not in MIGRATIONS:
                 raise InputError(_old_schema_message(self.path, version))
             if not readonly:
                 self.conn.execute("PRAGMA journal_mode=WAL")
                 self.conn.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable per commit
+                if version in MIGRATIONS:
+                    self._migrate()
             if create:
                 with self.transaction():
                     self._create()
             version = self._meta("schema_version")
+            if readonly and version in MIGRATIONS:
+                version = SCHEMA_VERSION  # read as it is (module comment at MIGRATIONS)
         except sqlite3.DatabaseError as exc:
             self.conn.close()
             raise InputError(f"{self.path}: not a streetcd change index ({exc})") from None
@@ -253,6 +261,17 @@ class ChangeIndex:
             "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'meta'"
         ).fetchone()
         return self._meta("schema_version") if has_meta else None
+
+    def _migrate(self) -> None:
+        """Bring an index of an older schema in :data:`MIGRATIONS` to this one, in one
+        transaction (another writer that migrated first leaves nothing to do)."""
+        with self.transaction():
+            version = self._meta("schema_version")
+            while version in MIGRATIONS:
+                for statement in MIGRATIONS[version]:
+                    self.conn.execute(statement)
+                version = str(int(version) + 1)
+            self.conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (version,))
 
     def _create(self) -> None:
         for statement in _SCHEMA.split(";"):
@@ -418,8 +437,8 @@ class ChangeIndex:
                 coords = [*g.centroid, *g.bbox_min, *g.bbox_max]
             cur = self.conn.execute(
                 "INSERT INTO regions (flagged_id, label, pixels, score, x, y, z, min_x, min_y,"
-                " min_z, max_x, max_y, max_z, dominant_class, foot_class)"
-                " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                " min_z, max_x, max_y, max_z, dominant_class, foot_class, depth_fraction)"
+                " VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                 (
                     flagged_id,
                     int(g.label),
@@ -428,6 +447,7 @@ class ChangeIndex:
                     *(None if c is None else float(c) for c in coords),
                     int(g.dominant_class),
                     int(g.foot_class),
+                    g.depth_fraction,
                 ),
             )
             if g.bbox_min is not None and g.bbox_max is not None:
@@ -622,6 +642,7 @@ def _region(record: Callable[..., Any], g: sqlite3.Row) -> RegionRecord:
         xyz("max_x", "max_y", "max_z"),
         g["dominant_class"],
         g["foot_class"],
+        g["depth_fraction"] if "depth_fraction" in g.keys() else None,  # not in schema 4
     )
 
 

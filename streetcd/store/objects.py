@@ -72,6 +72,11 @@ MAX_RAY_MISS_M = 1.0  # lines of sight that miss each other by more do not locat
 # bench, a passer-by beside it), which _agreeing splits. Twice MAX_RAY_MISS_M: a car seen in
 # parts by two views, or a region cut by the image border, still meets within it.
 MAX_AGREE_MISS_M = 2.0
+# Where its regions stand (streetcd.detect.locate) puts an object on the road only where the
+# road is this far around it as well: the depth locates a region to about a metre, and
+# railings, poles and bins stand at the kerb (a hedge where a railing stood, on a sparse
+# street, was placed 0.4 m from it, over the road); a parked car's middle is a metre into it.
+KERB_MARGIN_M = 1.0
 # A change near a segment's edge is seen by the views of two segments (seed 0's new pole:
 # one view in one grid cell, two in the next). Each segment's regions are linked with the
 # other segments' regions whose boxes lie this close to its own: ray links between one
@@ -101,6 +106,7 @@ class _Region:
     image_px: int | None  # pixels in the view's image (None: camera unknown)
     foot: int = 0  # old cloud's class behind the region's lowest pixels
     segment: str = ""  # the segment of its view
+    depth_fraction: float = math.nan  # where it stands: C + f (centroid − C); NaN: unknown
 
 
 # --- building ---------------------------------------------------------------------------
@@ -348,7 +354,7 @@ def _claim(review: sqlite3.Row, regions: list[_Region]) -> tuple[list[_Region], 
 
 _REGION_SQL = (
     "SELECT f.view, g.label, g.pixels, g.score, g.x, g.y, g.z, g.min_x, g.min_y, g.min_z,"
-    " g.max_x, g.max_y, g.max_z, g.dominant_class, g.foot_class, f.segment_id,"
+    " g.max_x, g.max_y, g.max_z, g.dominant_class, g.foot_class, g.depth_fraction, f.segment_id,"
     " coalesce(f.captured_at, f.detected_at) AS seen, v.center_x, v.center_y, v.center_z,"
     " v.camera"
     " FROM regions g JOIN flagged f ON f.id = g.flagged_id JOIN views v ON v.view = f.view"
@@ -403,6 +409,7 @@ def _as_regions(rows: Sequence[sqlite3.Row]) -> list[_Region]:
                 _image_px(r["camera"]),
                 int(r["foot_class"]),
                 r["segment_id"],
+                math.nan if r["depth_fraction"] is None else float(r["depth_fraction"]),
             )
         )
     # Night first, so that an object's first region is its first night's.
@@ -531,6 +538,8 @@ def _write_object(
             transient = "stands on the road (the old cloud's class there): a vehicle or a passer-by"
     if transient is None and kind == "unknown":
         transient = _not_one_place(members, meet, ground_class)
+    if transient is None and kind == "unknown" and ground_class is not None:
+        transient = _stands_on_road(members, ground_class)
     cur = conn.execute(
         "INSERT INTO objects (object_id, segment_id, kind, class, confidence, x, y, z, min_x,"
         " min_y, min_z, max_x, max_y, max_z, pixels, n_views, n_without, first_seen, last_seen,"
@@ -666,6 +675,45 @@ def _not_one_place(
             f" {meet.miss:.1f} m (RMS); not one thing standing in one place"
         )
     return None
+
+
+def _stands_on_road(members: Sequence[_Region], ground_class: GroundClass) -> str | None:
+    """Why an object of kind ``unknown`` stands on the road by where its regions stand, or
+    None (an ``added`` object is placed by where its lines of sight meet, a ``removed`` one
+    on the old surface).
+
+    A region with a depth fraction ``f`` (:mod:`streetcd.detect.locate`: the depth at which
+    its view and the neighbours agree) stands at ``C + f (X − C)`` for its centroid ``X`` on
+    the old surface and its camera ``C``. Where those points agree (every one within
+    MAX_AGREE_MISS_M of their mean weighted by pixels), the old cloud's class is read under
+    the mean and KERB_MARGIN_M from it along x and y: road at all five means a vehicle or a
+    passer-by. A car parked since the scan, its cabin seen against a façade by two views
+    whose regions cut it differently, is placed on the façade by the old surface and by the
+    meeting of the lines of sight, on the road by this. Points that disagree (a thin pole's
+    few pixels, measured at depths metres apart) tell nothing; the margin because the depth
+    places a region to about a metre and railings, poles and bins stand at the kerb.
+    """
+    located = [g for g in members if g.camera is not None and math.isfinite(g.depth_fraction)]
+    if not located:
+        return None
+    at = np.array([g.camera + g.depth_fraction * (g.centroid - g.camera) for g in located])
+    w = np.array([g.pixels for g in located], dtype=np.float64)
+    where = (at * w[:, None]).sum(axis=0) / w.sum()
+    if np.max(np.linalg.norm(at[:, :2] - where[:2], axis=1)) > MAX_AGREE_MISS_M:
+        return None
+    x, y = float(where[0]), float(where[1])
+    m = KERB_MARGIN_M
+    probes = ((x, y), (x - m, y), (x + m, y), (x, y - m), (x, y + m))
+    if any(ground_class(px, py) not in ROAD_CLASSES for px, py in probes):
+        return None  # not well inside the road: at the kerb, a railing or a pole stands too
+    before = [
+        (1.0 - g.depth_fraction) * float(np.linalg.norm(g.centroid - g.camera)) for g in located
+    ]
+    metres = float(np.median(before))
+    return (
+        f"stands on the road (where its views and their neighbours agree, {metres:.1f} m before"
+        " the old surface): a vehicle or a passer-by"
+    )
 
 
 def _on_one_spot(members: Sequence[_Region]) -> bool:

@@ -23,6 +23,9 @@ class RegionRecord:
     centroid, bbox_min, bbox_max are None when the region could not be located (none of its
     pixels has a reference surface behind it). foot_class is the old cloud's class behind the
     region's lowest pixels (:class:`streetcd.detect.regions.Region`), 0 when unknown.
+    depth_fraction is where the change stands, as a fraction of the camera depth of the old
+    surface behind it (:mod:`streetcd.detect.locate`), None when unknown (and in an index of
+    schema 4, which did not keep it).
     """
 
     label: int
@@ -33,6 +36,7 @@ class RegionRecord:
     bbox_max: tuple[float, float, float] | None
     dominant_class: int
     foot_class: int = 0
+    depth_fraction: float | None = None
 
     @property
     def located(self) -> bool:
