@@ -32,6 +32,7 @@ of its depth). Computed at ``scale`` of the view's resolution, never wider than
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -69,12 +70,15 @@ def working_set(
     percentiles: tuple[float, float] = (1.0, 99.0),
 ) -> Working | None:
     """The view ``image_p`` (H, W, 3) uint8 with its old surface ``depth_p`` (H, W) float32
-    and its ``neighbours`` (image, depth, intrinsics, pose, holes) at ``scale`` of the
-    view's resolution, never wider than ``max_work_px``; None without a neighbour."""
+    and its ``neighbours`` (image, depth, intrinsics, pose, holes) shrunk by a whole factor
+    ``k``, the least at which they are at most ``scale`` of the view's resolution and
+    ``max_work_px`` wide (a whole factor: OpenCV's area average takes a quarter of the time
+    there, 31 → 8.5 ms for a 12 MP image); None without a neighbour."""
     if not neighbours:
         return None
     h, w = depth_p.shape
-    s = min(float(scale), max_work_px / w)
+    k = max(1, math.ceil(max(1.0 / float(scale), w / max_work_px) - 1e-9))
+    s = 1.0 / k
     size = (max(1, round(w * s)), max(1, round(h * s)))
     return Working(
         _smoothed(image_p, size, window_px, percentiles),
