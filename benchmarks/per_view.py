@@ -221,8 +221,6 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     if params.texture.enabled and greys is not None:
         texture = _texture(*greys, surf, local, params, working)
         change = np.maximum(change, np.float32(params.texture.weight) * texture)
-    t_texture = time.perf_counter()
-    locating = _locating(image, surf, local, seen, params)  # where detect_view makes it
     t4 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)
     cut = cut_changes(energy, stretched, surf.depth, surf.classes, params.graphcut, labels=labels)
@@ -233,16 +231,18 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     region_labels, regions = changed_regions(
         mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
     )
-    if locating is not None and regions:
-        _located(regions, region_labels, locating, local, params)
+    if regions and params.locate.enabled:
+        locating = _locating(image, surf, local, seen, params)
+        if locating is not None:
+            _located(regions, region_labels, locating, local, params)
     t7 = time.perf_counter()
     t["correlate"] = t1 - t0
     t["superpixels"] = t2 - t1
     t["appearance"] = t3 - t2
-    t["texture"] = t_texture - t3
+    t["texture"] = t4 - t3
     t["graph_cut"] = t5 - t4
     t["refine"] = t6 - t5
-    t["regions"] = t7 - t6 + t4 - t_texture  # the working set is made before the cut
+    t["regions"] = t7 - t6
     t["sum_of_steps"] = sum(t[s] for s in STEPS[:N_STEPS])
     return t
 

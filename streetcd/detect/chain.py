@@ -290,10 +290,6 @@ def detect_view(
         nearer = _nearer(image, surf, local, seen, params)
         fused = np.maximum(fused, np.float32(params.correlate.nearer_weight) * nearer)
         lap("nearer")
-    # where the regions stand is measured after the cut, on the view and neighbours made
-    # small now: their full images (~250 MB at 12 MP) go before the graph cut, as before it
-    locating = _locating(image, surf, local, seen, params)
-    seen.clear()
     labels = None
     if params.graphcut.energy_of_mean:  # eq. 7 of each superpixel's mean raw change
         labels = superpixels(stretched, surf.classes, params.graphcut)
@@ -308,8 +304,11 @@ def detect_view(
     region_labels, regions = changed_regions(
         mask, energy, surf.depth, surf.classes, local.intrinsics, local.pose
     )
-    if locating is not None and regions:
-        regions = _located(regions, region_labels, locating, local, params)
+    if regions and params.locate.enabled:  # most views have none: nothing to make small
+        locating = _locating(image, surf, local, seen, params)
+        if locating is not None:
+            regions = _located(regions, region_labels, locating, local, params)
+    seen.clear()
     lap("regions")
     score = max((r.score for r in regions), default=0.0)
     return DetectionResult(

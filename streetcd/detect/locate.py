@@ -46,11 +46,10 @@ from streetcd.types import Intrinsics, Pose
 
 @dataclass(frozen=True)
 class Working:
-    """The view and its neighbours at the working size, made while the neighbours' full
-    images are still at hand (:func:`working_set`), so that they can go before the graph
-    cut: ``view`` (h, w, 3) float32 stretched and window-averaged colours, ``depth`` (h, w)
-    float32 metres of the old surface, ``intrinsics`` at that size, ``neighbours`` likewise
-    prepared (:func:`_small`)."""
+    """The view and its neighbours at the working size (:func:`working_set`): ``view``
+    (h, w, 3) float32 stretched and window-averaged colours, ``depth`` (h, w) float32 metres
+    of the old surface, ``intrinsics`` at that size, ``neighbours`` likewise prepared
+    (:func:`_small`)."""
 
     view: np.ndarray
     depth: np.ndarray
