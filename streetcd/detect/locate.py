@@ -221,7 +221,8 @@ def _samples(
 
 def _refined(fractions: np.ndarray, cost: np.ndarray, j: int) -> float:
     """The minimum of the parabola through the cost at ``j`` and its two neighbours (where
-    both are defined and the spacing even), clipped to their span; else ``fractions[j]``."""
+    both are defined and the spacing even; ``j`` being the least, it lies within half a step
+    of ``fractions[j]``); else ``fractions[j]``."""
     if 0 < j < fractions.size - 1 and np.isfinite(cost[j - 1 : j + 2]).all():
         a, b, c = cost[j - 1], cost[j], cost[j + 1]
         den = a - 2 * b + c
