@@ -53,6 +53,8 @@ SCHEMA_VERSION = "5"
 # Older schemas this one reads as they are and migrates when opened for writing: each adds
 # columns a reader of the older file never asks for (version 5: regions.depth_fraction).
 MIGRATIONS = {"4": ("ALTER TABLE regions ADD COLUMN depth_fraction REAL",)}
+# ... and what stands in for those columns when such a file is read as it is
+_REGIONS_LACK = {"4": ", NULL AS depth_fraction"}
 # ChangeIndex.query's orders, by its ``sort``: time is the capture's (else the detection's)
 QUERY_ORDER = {
     None: "f.segment_id, f.view",
@@ -243,6 +245,7 @@ class ChangeIndex:
                 with self.transaction():
                     self._create()
             version = self._meta("schema_version")
+            self.file_version = version or ""  # what the file holds (an older one read as it is)
             if readonly and version in MIGRATIONS:
                 version = SCHEMA_VERSION  # read as it is (module comment at MIGRATIONS)
         except sqlite3.DatabaseError as exc:
@@ -539,7 +542,8 @@ class ChangeIndex:
         for k in range(0, len(ids), 500):
             chunk = ids[k : k + 500]
             for g in self.conn.execute(
-                f"SELECT * FROM regions WHERE flagged_id IN ({','.join('?' * len(chunk))})"
+                f"SELECT *{_REGIONS_LACK.get(self.file_version, '')} FROM regions"
+                f" WHERE flagged_id IN ({','.join('?' * len(chunk))})"
                 " ORDER BY flagged_id, label",
                 chunk,
             ):
@@ -642,7 +646,7 @@ def _region(record: Callable[..., Any], g: sqlite3.Row) -> RegionRecord:
         xyz("max_x", "max_y", "max_z"),
         g["dominant_class"],
         g["foot_class"],
-        g["depth_fraction"] if "depth_fraction" in g.keys() else None,  # not in schema 4
+        g["depth_fraction"],
     )
 
 
