@@ -212,3 +212,91 @@ def test_cli_scores_an_index_and_writes_json(tmp_path):
     assert "the old cloud has a car there" in res.output
     res = CliRunner().invoke(evaluate, ["--index", str(index)])
     assert res.exit_code == 2 and "give --scene DIR" in res.output
+
+
+def _case_of(scene, tmp_path, labels=True):
+    """The scene's truth laid out as an annotated case (`streetcd evaluate --case`): gt/ with
+    each view's mask, don't-care and labels, images/ with a file per view, case.json naming
+    the labels."""
+    manifest = json.loads((scene / "manifest.json").read_text())
+    case = tmp_path / "case"
+    (case / "gt").mkdir(parents=True)
+    (case / "images").mkdir()
+    for v in manifest["views"]:
+        stem = v["name"].rsplit(".", 1)[0]
+        inst = cv2.imread(str(scene / v["instances"]), cv2.IMREAD_UNCHANGED)
+        dontcare = cv2.imread(str(scene / v["dontcare"]), cv2.IMREAD_UNCHANGED)
+        (case / "images" / v["name"]).write_bytes(b"")  # only the names are read
+        cv2.imwrite(
+            str(case / "gt" / f"{stem}.mask.png"), np.where(inst > 0, 255, 0).astype(np.uint8)
+        )
+        cv2.imwrite(str(case / "gt" / f"{stem}.dontcare.png"), dontcare)
+        if labels:
+            cv2.imwrite(str(case / "gt" / f"{stem}.labels.png"), inst)
+    objects = [
+        {"id": c["instance_id"], "type": c["type"], "kind": c["kind"]} for c in manifest["changes"]
+    ]
+    (case / "case.json").write_text(json.dumps({"objects": objects}))
+    return case
+
+
+def test_an_index_is_scored_against_a_cases_labelled_objects_as_against_a_scene(tmp_path):
+    from streetcd.eval.objects import score_case_index
+
+    scene, index, _ = _scene_and_index(tmp_path)
+    case = _case_of(scene, tmp_path)
+    by_scene = score_index(scene, index).as_dict()
+    by_case = score_case_index(case, index).as_dict()
+    assert by_case.pop("scene") == str(case) and by_scene.pop("scene") == str(scene)
+    assert by_case == by_scene
+    assert (by_case["changes_found"], by_case["changes_total"]) == (2, 3)
+
+
+def test_a_label_under_dont_care_is_a_disturbance_in_a_case(tmp_path):
+    from streetcd.eval.objects import score_case_index
+
+    scene, index, seen = _scene_and_index(tmp_path)
+    case = _case_of(scene, tmp_path)
+    before = score_case_index(case, index)
+    # the pole's pixels in every view marked don't-care as well: they count as don't-care
+    for path in (case / "gt").glob("*.labels.png"):
+        labels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        dc_path = path.with_name(path.name.replace(".labels.", ".dontcare."))
+        dontcare = cv2.imread(str(dc_path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(dc_path), np.where(labels == 1, 255, dontcare).astype(np.uint8))
+    after = score_case_index(case, index)
+    pole_px = seen["pole"] * ROWS * ON["pole"]
+    assert after.flagged.change == before.flagged.change - pole_px
+    assert after.flagged.dontcare == before.flagged.dontcare + pole_px
+    pole = {c.instance_id: c for c in after.changes}[1]
+    assert (pole.truth_px, pole.flagged_px, pole.objects) == (0, 0, ())
+
+
+def test_a_case_without_labels_cannot_score_objects(tmp_path):
+    from streetcd.eval.objects import score_case_index
+
+    scene, index, _ = _scene_and_index(tmp_path)
+    case = _case_of(scene, tmp_path, labels=False)
+    with pytest.raises(InputError, match="no <stem>.labels.png"):
+        score_case_index(case, index)
+    first = sorted((case / "gt").glob("*.mask.png"))[0]
+    stem = first.name.split(".")[0]
+    cv2.imwrite(str(case / "gt" / f"{stem}.labels.png"), np.zeros((H, W), np.uint8))
+    # one view has labels now; another view's mask has changed pixels and no labels
+    with pytest.raises(MissingInputError, match=r"labels.png: labels not found, and .* changed"):
+        score_case_index(case, index)
+
+
+def test_cli_scores_an_index_against_a_case(tmp_path):
+    from streetcd.cli.evaluate import evaluate
+    from streetcd.eval.objects import score_case_index
+
+    scene, index, _ = _scene_and_index(tmp_path)
+    case = _case_of(scene, tmp_path)
+    out = tmp_path / "eval-case-index.json"
+    res = CliRunner().invoke(
+        evaluate, ["--case", str(case), "--index", str(index), "--json", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    assert json.loads(out.read_text()) == score_case_index(case, index).as_dict()
+    assert "Labelled objects of the case" in res.output and "recall" in res.output

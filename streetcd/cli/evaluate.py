@@ -99,9 +99,10 @@ def _write_json(path: Path | None, data: dict) -> None:
     "--index",
     "index_path",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="With --scene: score this change index (from `streetcd run` on the scene's images) "
-    "instead of running the detector: flagged pixels on true changes and don't-care "
-    "disturbances, change objects against the manifest's changes, transients kept out.",
+    help="With --scene or --case: score this change index (from `streetcd run` on the "
+    "scene's or the case's images) instead of running the detector: flagged pixels on true "
+    "changes and don't-care disturbances, change objects against the manifest's changes (a "
+    "case's labelled objects), transients kept out.",
 )
 @click.option(
     "--json",
@@ -151,24 +152,27 @@ def evaluate(
     """Score the detector on a synthetic scene: Table 1 (GDR, FDR, TP, FP, kappa) with the
     paper's baselines, Table 2 per object type; on an annotated case (--case: the same rates,
     per object, and the views the nightly run's rule flags); or kappa against the
-    registration error. With --scene and --index: score a `streetcd run` index of the
-    scene's images instead (flagged pixels on true changes and on don't-care disturbances,
-    change objects against the manifest's changes, transients kept out and why)."""
+    registration error. With --scene or --case and --index: score a `streetcd run` index of
+    the scene's or the case's images instead (flagged pixels on true changes and on
+    don't-care disturbances, change objects against the manifest's changes or the case's
+    labelled objects, transients kept out and why)."""
     from rich.console import Console
 
     from streetcd.config import load_config
 
     console = Console(stderr=False)
-    if index_path is not None and scene is None:
-        raise click.UsageError("--index is scored against a synthetic scene: give --scene DIR")
+    if index_path is not None and scene is None and case is None:
+        raise click.UsageError(
+            "--index is scored against a synthetic scene or an annotated case: give --scene DIR"
+            " or --case DIR"
+        )
     if sum(x is not None for x in (scene, case, sweep)) != 1:
         raise click.UsageError(
             "give exactly one of --scene DIR, --case DIR or --sweep-pose-noise LEVELS"
         )
     try:
         if index_path is not None:
-            assert scene is not None
-            _write_json(json_out, _run_index(console, scene, index_path))
+            _write_json(json_out, _run_index(console, scene, case, index_path))
             return
         config = load_config(params_path)
         params = config.detect
@@ -215,13 +219,18 @@ def _run_scene(
     return data
 
 
-def _run_index(console: Any, scene: Path, index_path: Path) -> dict:
-    """``--scene DIR --index INDEX``: score the index's change objects (issue 17, item 5)."""
+def _run_index(console: Any, scene: Path | None, case: Path | None, index_path: Path) -> dict:
+    """``--scene DIR --index INDEX`` (issue 17, item 5) or ``--case DIR --index INDEX``: score
+    the index's change objects."""
     from rich.table import Table
 
-    from streetcd.eval.objects import score_index
+    from streetcd.eval.objects import score_case_index, score_index
 
-    data = score_index(scene, index_path).as_dict()
+    if case is not None:
+        data = score_case_index(case, index_path).as_dict()
+    else:
+        assert scene is not None
+        data = score_index(scene, index_path).as_dict()
     px = data["pixels"]
     t = Table(title=f"Flagged pixels of {data['flagged_views']} flagged views")
     for col in ("pixels of", "pixels", "on true change (%)", "on don't-care (%)", "elsewhere"):
@@ -246,7 +255,7 @@ def _run_index(console: Any, scene: Path, index_path: Path) -> dict:
         f"{_num(px['truth_reported_pct'])} % reported; flagged views with no pixel on a true "
         f"change: {data['flagged_views_without_change']} of {data['flagged_views']}"
     )
-    t = Table(title="Changes of the manifest")
+    t = Table(title="Labelled objects of the case" if case else "Changes of the manifest")
     cols = ("id", "kind", "type", "truth px", "flagged px", "reported px", "objects", "kept out")
     for col in cols:
         t.add_column(col, justify="left" if col in ("kind", "type") else "right")

@@ -198,6 +198,62 @@ def load_case(root: str | Path) -> Case:
 
 
 @dataclass(frozen=True)
+class LabelledTruth:
+    """A case's ground truth without its cloud and poses, for scoring a run's change index
+    (:func:`streetcd.eval.objects.score_case_index`): ``views`` maps an image name of
+    ``images/`` to its ``(mask, dontcare, labels)`` paths in ``gt/`` (labels None where the
+    view has none); ``objects`` is case.json's label number -> (object type, kind), the kind
+    "" unless an entry names it."""
+
+    root: Path
+    views: dict[str, tuple[Path, Path, Path | None]]
+    objects: dict[int, tuple[str, str]]
+
+
+def labelled_truth(root: str | Path) -> LabelledTruth:
+    """Read a case's ``gt/`` and ``case.json`` only (layout in the module docstring): every
+    image of ``images/`` with a ``gt/<stem>.mask.png``. MissingInputError naming a missing
+    folder or don't-care mask; InputError when the case has no ``labels.png`` at all (a
+    change object is matched to a labelled object: without labels there is none)."""
+    root = Path(root)
+    images, gt = root / "images", root / "gt"
+    for folder, what in (
+        (root, "case folder"),
+        (images, "image folder"),
+        (gt, "ground-truth folder"),
+    ):
+        if not folder.is_dir():
+            raise MissingInputError(f"{folder}: {what} not found")
+    manifest = _manifest(root)
+    views: dict[str, tuple[Path, Path, Path | None]] = {}
+    for image in sorted(p for p in images.iterdir() if p.is_file()):
+        mask = gt / f"{image.stem}.mask.png"
+        if not mask.exists():
+            continue
+        dontcare = gt / f"{image.stem}.dontcare.png"
+        if not dontcare.exists():
+            raise MissingInputError(
+                f"{dontcare}: ground-truth dontcare of {image.name!r} not found"
+            )
+        labels = gt / f"{image.stem}.labels.png"
+        views[image.name] = (mask, dontcare, labels if labels.exists() else None)
+    if not views:
+        raise InputError(f"{gt}: no <stem>.mask.png for any image of {images}")
+    if all(labels is None for _, _, labels in views.values()):
+        raise InputError(
+            f"{gt}: no <stem>.labels.png: scoring change objects needs the changes' object "
+            "numbers per pixel"
+        )
+    types = _objects(root, manifest)  # checks the entries
+    key = "objects" if "objects" in manifest else "inserted_objects"
+    kinds: dict[int, str] = {}
+    for i, entry in enumerate(manifest.get(key, [])):
+        label = entry.get("id", entry.get("label")) if key == "objects" else i + 1
+        kinds[label] = str(entry.get("kind", ""))
+    return LabelledTruth(root, views, {k: (t, kinds.get(k, "")) for k, t in types.items()})
+
+
+@dataclass(frozen=True)
 class Truth:
     """One view's ground truth: (H, W) bool ``mask`` and ``dontcare``, (H, W) int32
     ``instances`` (the labels, or the mask's 8-connected components without them)."""

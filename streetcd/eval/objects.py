@@ -1,9 +1,11 @@
-"""Scoring an index's change objects against a synthetic scene's truth (issue 17, item 5).
+"""Scoring an index's change objects against a synthetic scene's truth (issue 17, item 5) or
+an annotated case's labelled objects.
 
 ``streetcd run`` writes a change index: flagged views with their masks, regions and the
 change objects merged from them (:mod:`streetcd.store.objects`). This module reads that index
 and the scene's truth (``manifest.json``, ``truth/<stem>.instances.png`` and
-``truth/<stem>.dontcare.png``) and says
+``truth/<stem>.dontcare.png``; for a case ``gt/<stem>.labels.png`` and
+``gt/<stem>.dontcare.png`` with case.json's object names, :func:`score_case_index`) and says
 
 * where the flagged pixels fall: on a true change, on a don't-care disturbance (a parked car
   that came or went, a pedestrian, grown foliage) or elsewhere; for all flagged pixels, for
@@ -21,8 +23,9 @@ the index records those labels with each object's views. Nothing here runs the d
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -264,6 +267,32 @@ def _truth(scene: Path, record: dict[str, Any]) -> _Truth:
     return _Truth(inst, dontcare & (inst == 0))
 
 
+def _case_truth(mask_path: Path, dontcare_path: Path, labels_path: Path | None) -> _Truth:
+    """One view of an annotated case: its labels outside don't-care, and its don't-care.
+    A view without a labels file may have no change (an all-zero mask), nothing else."""
+    dontcare = _read_png(dontcare_path, "don't-care mask") > 0
+    if labels_path is None:
+        if np.any(_read_png(mask_path, "change mask")):
+            raise MissingInputError(
+                f"{mask_path.with_name(mask_path.name.replace('.mask.', '.labels.'))}: labels"
+                f" not found, and {mask_path.name} has changed pixels"
+            )
+        labels = np.zeros(dontcare.shape, np.int32)
+    else:
+        labels = _read_png(labels_path, "labels image").astype(np.int32)
+    if labels.shape != dontcare.shape:
+        raise CorruptFileError(
+            f"{dontcare_path}: {dontcare.shape} pixels, {labels_path}: {labels.shape}"
+        )
+    return _Truth(np.where(dontcare, 0, labels), dontcare)
+
+
+def _per_change(inst: np.ndarray) -> dict[int, int]:
+    """Pixels per change instance of an (H, W) instance image (0: none)."""
+    ids, counts = np.unique(inst[inst > 0], return_counts=True)
+    return {int(i): int(c) for i, c in zip(ids, counts, strict=True)}
+
+
 def _where(pixels: np.ndarray, truth: _Truth) -> tuple[Where, dict[int, int]]:
     """Where the (H, W) bool ``pixels`` fall, and their count per change instance."""
     on = truth.inst[pixels]
@@ -285,20 +314,84 @@ def _match(by_change: dict[int, int], total: int) -> int | None:
 # --- scoring ------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class _Change:
+    """A change of the truth: its id (the truth's instance or label number), kind, type and
+    its pixels in the truth of every view (flagged or not)."""
+
+    id: int
+    kind: str
+    type: str
+    truth_px: int
+
+
 def score_index(scene: str | Path, index_path: str | Path) -> IndexScore:
     """Score the change objects of ``index_path`` (a ``streetcd run`` index) against the
     synthetic scene folder ``scene``. The index's flagged views are matched to the
     manifest's views by image name; views of other images are listed in ``skipped_views``
     (InputError when no flagged view is of the scene). The index is opened read-only; one
     view's mask and truth are in memory at a time."""
+    scene, index_path = Path(scene), Path(index_path)
+    _check_index(index_path)
+    manifest = read_manifest(scene)
+    records = {Path(str(r["name"])).name: r for r in manifest["views"]}
+    truth_px = _truth_pixels(manifest)
+    changes = [
+        _Change(
+            int(c["instance_id"]),
+            str(c.get("kind", "")),
+            str(c.get("type", "")),
+            truth_px.get(int(c["instance_id"]), 0),
+        )
+        for c in manifest["changes"]
+    ]
+    truths = {name: partial(_truth, scene, r) for name, r in records.items()}
+    return _score(scene, index_path, truths, changes)
+
+
+def score_case_index(case: str | Path, index_path: str | Path) -> IndexScore:
+    """Score the change objects of ``index_path`` (a ``streetcd run`` of an annotated case's
+    images) against the case's labelled ground truth (``gt/<stem>.labels.png``, the object
+    numbers of case.json; the layout of :mod:`streetcd.eval.case`), as :func:`score_index`
+    does against a synthetic scene. A pixel on don't-care is a disturbance even where a label
+    covers it (``streetcd evaluate --case`` does not score it either). Reads ``gt/`` and
+    case.json only: not the cloud, not the poses."""
+    from streetcd.eval.case import labelled_truth
+
+    case, index_path = Path(case), Path(index_path)
+    _check_index(index_path)
+    labelled = labelled_truth(case)
+    truths = {name: partial(_case_truth, *paths) for name, paths in labelled.views.items()}
+    totals: dict[int, int] = {}
+    for load in truths.values():  # each change's pixels in every view, flagged or not
+        _add(totals, _per_change(load().inst))
+    changes = [
+        _Change(
+            label,
+            labelled.objects.get(label, ("", ""))[1],
+            labelled.objects.get(label, (f"object {label}", ""))[0],
+            totals.get(label, 0),
+        )
+        for label in sorted(set(labelled.objects) | set(totals))
+    ]
+    return _score(case, index_path, truths, changes)
+
+
+def _check_index(index_path: Path) -> None:
+    if not index_path.exists():
+        raise MissingInputError(f"change index not found: {index_path}")
+
+
+def _score(
+    source: Path,
+    index_path: Path,
+    truths: Mapping[str, Callable[[], _Truth]],
+    changes: Sequence[_Change],
+) -> IndexScore:
+    """:func:`score_index` against ``truths`` (image name -> its truth, read when called)."""
     from streetcd.store.index import ChangeIndex
     from streetcd.store.objects import list_objects
 
-    scene, index_path = Path(scene), Path(index_path)
-    if not index_path.exists():
-        raise MissingInputError(f"change index not found: {index_path}")
-    manifest = read_manifest(scene)
-    records = {Path(str(r["name"])).name: r for r in manifest["views"]}
     with ChangeIndex(index_path, readonly=True) as idx:
         flagged = idx.conn.execute(
             "SELECT f.view, f.mask_path, f.n_regions, coalesce(v.image, f.view) AS image"
@@ -316,24 +409,24 @@ def score_index(scene: str | Path, index_path: str | Path) -> IndexScore:
     skipped = []
     for row in flagged:
         image = Path(str(row["image"]).split("#")[0]).name
-        if image not in records:
+        if image not in truths:
             skipped.append(row["view"])
             continue
         if row["mask_path"] is None:
             raise CorruptFileError(f"{index_path}: flagged view {row['view']!r} has no mask_path")
         labels = _mask_labels(_resolve(row["mask_path"], index_path), row["n_regions"])
-        truth = _truth(scene, records[image])
+        truth = truths[image]()
         if labels.shape != truth.inst.shape:
             raise CorruptFileError(
-                f"{row['mask_path']}: {labels.shape} pixels, the scene's truth of {image}"
+                f"{row['mask_path']}: {labels.shape} pixels, the truth of {image}"
                 f" {truth.inst.shape}"
             )
         tally.add_view(labels, truth, objects, in_view.get(row["view"], []), image)
     if flagged and tally.n_views == 0:
         raise InputError(
-            f"{index_path}: none of its {len(flagged)} flagged views is an image of {scene}"
+            f"{index_path}: none of its {len(flagged)} flagged views is an image of {source}"
         )
-    return tally.score(scene, index_path, manifest, objects, tuple(skipped))
+    return tally.score(source, index_path, changes, objects, tuple(skipped))
 
 
 def _add(into: dict[int, int], more: dict[int, int]) -> None:
@@ -388,7 +481,7 @@ class _Tally:
         self,
         scene: Path,
         index_path: Path,
-        manifest: dict[str, Any],
+        changes: Sequence[_Change],
         objects: Sequence[dict],
         skipped: tuple[str, ...],
     ) -> IndexScore:
@@ -406,22 +499,19 @@ class _Tally:
             for k, o in enumerate(objects)
             if self.views[k]  # objects of views of another scene are left out
         )
-        truth_px = _truth_pixels(manifest)
-        changes = []
-        for c in manifest["changes"]:
-            cid = int(c["instance_id"])
-            changes.append(
-                ChangeScore(
-                    cid,
-                    str(c.get("kind", "")),
-                    str(c.get("type", "")),
-                    truth_px.get(cid, 0),
-                    self.flagged_by_change.get(cid, 0),
-                    self.reported_by_change.get(cid, 0),
-                    tuple(o.id for o in scores if o.match == cid and o.transient is None),
-                    tuple(o.id for o in scores if o.match == cid and o.transient is not None),
-                )
+        scored = tuple(
+            ChangeScore(
+                c.id,
+                c.kind,
+                c.type,
+                c.truth_px,
+                self.flagged_by_change.get(c.id, 0),
+                self.reported_by_change.get(c.id, 0),
+                tuple(o.id for o in scores if o.match == c.id and o.transient is None),
+                tuple(o.id for o in scores if o.match == c.id and o.transient is not None),
             )
+            for c in changes
+        )
         return IndexScore(
             str(scene),
             str(index_path),
@@ -431,7 +521,7 @@ class _Tally:
             self.n_views,
             self.without_change,
             scores,
-            tuple(changes),
+            scored,
             skipped,
         )
 
