@@ -240,3 +240,39 @@ def test_the_run_plans_from_what_the_check_read(small_city, tmp_path, monkeypatc
         other, small_city.poses, small_city.store, index, out, listing=report.listing
     )
     assert len(reads) == 3  # not this folder's listing: read again
+
+
+@pytest.fixture(scope="module")
+def city_coded(tmp_path_factory):
+    """A small street whose cloud has a city's own class codes (210 building, 201 road …),
+    ingested, and the class map `streetcd synth` writes beside it."""
+    from streetcd.store.ingest import ingest
+    from streetcd.synth import generate_street
+
+    root = tmp_path_factory.mktemp("coded")
+    manifest = generate_street(
+        root / "street", seed=3, n_images=3, size=(320, 180), length_m=30.0, kind="codes"
+    )
+    street = Path(manifest).parent
+    assert ingest(street / "cloud", root / "store.zarr").ok
+    return street, root / "store.zarr"
+
+
+def test_the_class_codes_are_judged_by_the_configs_class_map(city_coded):
+    from streetcd.config import load_config
+
+    street, store = city_coded
+    poses = street / "poses" / "poses_opk.csv"
+    # with the street's class map: no warning, each code named by its role there
+    mapped = check_inputs(
+        street / "images", poses, store, config=load_config(street / "streetcd.yaml")
+    )
+    assert mapped.warnings == ()
+    (codes,) = mapped.notes
+    assert "building 210" in codes and "road 201" in codes
+    # with the default (ASPRS) map the same codes are in no role: said once, by the check
+    plain = check_inputs(street / "images", poses, store)
+    (warning,) = plain.warnings
+    assert warning.startswith("only 0.00 % of the reference points have a class the detector uses")
+    assert "210:" in warning and "set detect.classes" in warning
+    assert "code 210" in plain.notes[0]

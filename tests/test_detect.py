@@ -723,6 +723,13 @@ def test_a_mostly_unclassified_cloud_is_named_once_per_cache(images, caplog):
     assert len(said) == 1
     assert "90.0 % of the reference points have a code in no role" in said[0]
     assert "1: 90.0 %" in said[0] and "inferred from the points' geometry" in said[0]
+    # a worker of `streetcd run` leaves it to the night's input check, which says it once
+    from streetcd.run.worker import WorkerRuntime
+
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="streetcd.detect.chain"):
+        run(images, mostly, WorkerRuntime().surfaces)
+    assert not [r for r in caplog.records if "detect.classes" in r.getMessage()]
 
 
 @pytest.mark.parametrize(

@@ -582,11 +582,16 @@ def _nearer(
     return nearer
 
 
+# What a cache is told once its cloud's classes have been checked (streetcd run's workers
+# are told before their first view: the night's input check has said it, once).
+CLASSES_CHECKED = "classes checked"
+
+
 def _check_classes(cloud: PointCloud, params: DetectParams, cache: SurfaceCache | None) -> None:
     """Warn when the cloud's classes are of no use to the detector (its codes are not in the
     class map, or it is unclassified), or when most of its points are in no role: once per
     cache (a worker's run), or at every call without one."""
-    if cache is not None and not cache.first_time("classes checked"):
+    if cache is not None and not cache.first_time(CLASSES_CHECKED):
         return
     why = useless_classes(cloud.classification, params.classes)
     if why is None:  # useful classes, but on a minority of the points

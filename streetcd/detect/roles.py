@@ -129,7 +129,14 @@ def useless_classes(classification: np.ndarray, class_map: ClassMap) -> str | No
     """Why the classes of a cloud (N,) uint8 (its own codes) are of no use to the detector,
     or None when they are: fewer than ``MIN_USEFUL_SHARE`` of the points are in a role
     besides the ground and the road (an unclassified cloud, or codes the class map lacks)."""
-    counts, total = _code_counts(classification)
+    return useless_codes(_code_counts(classification)[0], class_map)
+
+
+def useless_codes(counts: np.ndarray, class_map: ClassMap) -> str | None:
+    """:func:`useless_classes` of points counted by code: ``counts`` (256,) points per code
+    of the cloud's own (``streetcd check`` counts the store's tiles near the views)."""
+    counts = np.asarray(counts)
+    total = int(counts.sum())
     if total == 0:
         return None
     table = _table(class_map)
@@ -154,7 +161,13 @@ def mostly_roleless(classification: np.ndarray, class_map: ClassMap) -> str | No
     """Why the roles of most of a cloud's points (N,) uint8 (its own codes) are missing: more
     than ``MAX_ROLELESS_SHARE`` of them have a code in no role of the class map; None when
     fewer do. With ``infer: auto`` those points' roles are then inferred."""
-    counts, total = _code_counts(classification)
+    return roleless_codes(_code_counts(classification)[0], class_map)
+
+
+def roleless_codes(counts: np.ndarray, class_map: ClassMap) -> str | None:
+    """:func:`mostly_roleless` of points counted by code, ``counts`` (256,)."""
+    counts = np.asarray(counts)
+    total = int(counts.sum())
     roleless = int(counts[_table(class_map) == classes.UNCLASSIFIED].sum())
     if total == 0 or roleless <= MAX_ROLELESS_SHARE * total:
         return None
@@ -167,6 +180,12 @@ def mostly_roleless(classification: np.ndarray, class_map: ClassMap) -> str | No
         f"{100 * roleless / total:.1f} % of the reference points have a code in no role of "
         f"detect.classes (codes by share: {_top_codes(counts)}): {meanwhile}"
     )
+
+
+def role_of_code(code: int, class_map: ClassMap) -> str | None:
+    """The name of the role the class map gives a cloud's code (0-255); None for none."""
+    role = int(_table(class_map)[code])
+    return None if role == classes.UNCLASSIFIED else classes.NAMES.get(role, str(role))
 
 
 def _code_counts(classification: np.ndarray) -> tuple[np.ndarray, int]:

@@ -27,12 +27,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from streetcd import classes
 from streetcd.config import Config
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError, StreetcdError
 from streetcd.store.locks import lock_path, run_lock
 
 if TYPE_CHECKING:
+    from streetcd.config import ClassMap
     from streetcd.run.plan import NightListing
     from streetcd.store.tiles import TileStore
     from streetcd.types import View
@@ -135,7 +135,8 @@ def check_inputs(
     if failing:
         warnings.append(f"{len(failing)} view(s) will fail: {_some(failing)}; e.g. {first_error}")
     if tiles is not None:
-        notes += _class_codes(tiles, [near[n] for n in sorted(near)], reach_m, warnings)
+        views = [near[n] for n in sorted(near)]
+        notes += _class_codes(tiles, views, reach_m, warnings, config.detect.classes)
     return CheckReport(
         frozenset(files) | frozenset(refused),
         frozenset(posed) | {name for name, _ in bad_rows},
@@ -273,10 +274,21 @@ def _image_sizes(
 
 
 def _class_codes(
-    tiles: TileStore, views: Sequence[View], reach_m: float, warnings: list[str]
+    tiles: TileStore,
+    views: Sequence[View],
+    reach_m: float,
+    warnings: list[str],
+    class_map: ClassMap,
 ) -> list[str]:
-    """A note of the class codes of the store's points near ``views`` (share of points);
-    a warning when they carry none the detector uses."""
+    """A note of the class codes of the store's points near ``views`` (share of points,
+    each with the role ``class_map`` gives it); a warning when too few are in a role the
+    detector uses, a note when most are in no role (the detector's own checks,
+    :func:`streetcd.detect.roles.useless_codes` and :func:`~streetcd.detect.roles.roleless_codes`:
+    said here once for the night, not by every worker)."""
+    import numpy as np
+
+    from streetcd.detect.roles import role_of_code, roleless_codes, useless_codes
+
     counts: Counter[int] = Counter()
     seen: set[str] = set()
     for v in views:
@@ -286,18 +298,22 @@ def _class_codes(
                 seen.add(t.id)
                 counts.update(t.classes)
     total = sum(counts.values()) or 1
-    used = set(classes.LOW_WEIGHT) | set(classes.INVENTORY) | {classes.BUILDING}
-    if not used & set(counts):
-        warnings.append(
-            "the store's points near the views carry none of the class codes the detector "
-            f"uses ({', '.join(f'{classes.NAMES[c]} {c}' for c in sorted(used))}): class "
-            "weights and the inventory check will do nothing"
-        )
+    by_code = np.zeros(256, np.int64)
+    for code, n in counts.items():
+        by_code[code] = n
+    notes = []
+    useless = useless_codes(by_code, class_map)
+    if useless is not None:
+        warnings.append(useless)
+    else:
+        roleless = roleless_codes(by_code, class_map)
+        if roleless is not None:
+            notes.append(roleless)
     shares = ", ".join(
-        f"{classes.NAMES.get(c, 'code')} {c} {100 * n / total:.0f} %"
+        f"{role_of_code(c, class_map) or 'code'} {c} {100 * n / total:.0f} %"
         for c, n in counts.most_common()
     )
-    return [f"class codes near the views ({len(seen)} tiles): {shares}"]
+    return [f"class codes near the views ({len(seen)} tiles): {shares}", *notes]
 
 
 def _some(names: object) -> str:

@@ -35,7 +35,7 @@ import numpy as np
 
 from streetcd.config import RunParams
 from streetcd.detect.cache import SurfaceCache
-from streetcd.detect.chain import CLOUD_FIELDS, detect_view
+from streetcd.detect.chain import CLASSES_CHECKED, CLOUD_FIELDS, detect_view
 from streetcd.detect.regions import Region
 from streetcd.errors import InputError, MissingInputError
 from streetcd.geometry.frustum import in_frustum
@@ -156,6 +156,9 @@ class WorkerRuntime:
 
     def __init__(self, surfaces: SurfaceCache | None = None) -> None:
         self.surfaces = surfaces if surfaces is not None else SurfaceCache()
+        # the night's input check notes the cloud's classes once (streetcd.run.check); every
+        # worker saying it again printed it once per worker
+        self.surfaces.first_time(CLASSES_CHECKED)
         self.clouds = FutureCache(SEGMENT_CLOUDS)  # None for a crop that failed
         self.images = ImageCache(self.io_thread)
         self._stores: OrderedDict[tuple[str, int | None], TileStore] = OrderedDict()
