@@ -157,7 +157,7 @@ class SurfaceCache:
 
     def first_time(self, what: str) -> bool:
         """True the first time ``what`` is asked about in this cache's lifetime (a warning
-        that holds for every view of a run is said once per worker, not once per view)."""
+        that holds for every view of a run is said once per cache, not once per view)."""
         if what in self._told:
             return False
         self._told.add(what)
