@@ -295,12 +295,11 @@ def _per_change(inst: np.ndarray) -> dict[int, int]:
 
 def _where(pixels: np.ndarray, truth: _Truth) -> tuple[Where, dict[int, int]]:
     """Where the (H, W) bool ``pixels`` fall, and their count per change instance."""
-    on = truth.inst[pixels]
-    ids, counts = np.unique(on[on > 0], return_counts=True)
-    n_change = int(counts.sum())
+    by_change = _per_change(truth.inst[pixels])
+    n_change = sum(by_change.values())
     n_dc = int(np.count_nonzero(truth.dontcare[pixels]))
     where = Where(n_change, n_dc, int(np.count_nonzero(pixels)) - n_change - n_dc)
-    return where, {int(i): int(c) for i, c in zip(ids, counts, strict=True)}
+    return where, by_change
 
 
 def _match(by_change: dict[int, int], total: int) -> int | None:
