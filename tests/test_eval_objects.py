@@ -51,6 +51,7 @@ def _scene_and_index(tmp_path, unlocated_in_first=True):
     segments = plan_segments(views, PARAMS)
     seg = {n: s.id for s in segments for n in s.views}
     seen = {"pole": 0, "box": 0, "car": 0, "unlocated": 0, "no_change_views": 0}
+    views_by = {(True, True): 0, (True, False): 0, (False, True): 0, (False, False): 0}
     records, manifest_views = [], []
     for i, v in enumerate(views):
         mask = np.zeros((H, W), np.uint8)
@@ -87,6 +88,7 @@ def _scene_and_index(tmp_path, unlocated_in_first=True):
             inst[300:303, 500:510] = 3  # the bin, never flagged
         ids, counts = np.unique(inst[inst > 0], return_counts=True)
         changed = {str(k): int(n) for k, n in zip(ids, counts, strict=True)}
+        views_by[bool(changed), bool(regions)] += 1  # (has a true change, flagged)
         cv2.imwrite(str(scene / "truth" / f"{v.stem}.instances.png"), inst)
         cv2.imwrite(str(scene / "truth" / f"{v.stem}.dontcare.png"), dontcare)
         manifest_views.append(
@@ -115,6 +117,7 @@ def _scene_and_index(tmp_path, unlocated_in_first=True):
         idx.add_segments(segments)
         idx.publish("r", records)
         rebuild_objects(idx, [s.id for s in segments])
+    seen["views"] = views_by
     return scene, index, seen
 
 
@@ -300,3 +303,35 @@ def test_cli_scores_an_index_against_a_case(tmp_path):
     assert res.exit_code == 0, res.output
     assert json.loads(out.read_text()) == score_case_index(case, index).as_dict()
     assert "Labelled objects of the case" in res.output and "recall" in res.output
+
+
+def test_the_views_the_run_flagged_are_counted_by_their_truth(tmp_path):
+    from streetcd.eval.objects import score_case_index
+
+    scene, index, seen = _scene_and_index(tmp_path)
+    by = dict(seen["views"])
+    # one view the run did not flag gets a change in its truth (the bin, 5 pixels): a view
+    # with a true change that was not flagged
+    with ChangeIndex(index, readonly=True) as idx:
+        flagged = {r[0] for r in idx.conn.execute("SELECT image FROM views WHERE flagged = 1")}
+    manifest = json.loads((scene / "manifest.json").read_text())
+    quiet = next(v for v in manifest["views"] if v["name"] not in flagged)
+    inst = cv2.imread(str(scene / quiet["instances"]), cv2.IMREAD_UNCHANGED)
+    inst[10, 10:15] = 3
+    cv2.imwrite(str(scene / quiet["instances"]), inst)
+    quiet["changed_pixels"] = {"3": 5}
+    (scene / "manifest.json").write_text(json.dumps(manifest))
+    by[False, False] -= 1
+    by[True, False] += 1
+    assert all(n > 0 for n in by.values()), by  # every kind of view is there
+    expected = {
+        "with_change": by[True, True] + by[True, False],
+        "with_change_flagged": by[True, True],
+        "without_change": by[False, True] + by[False, False],
+        "without_change_flagged": by[False, True],
+    }
+    views = score_index(scene, index).as_dict()["views"]
+    assert {k: views[k] for k in expected} == expected
+    pct = round(100 * by[True, True] / expected["with_change"], 2)
+    assert views["with_change_flagged_pct"] == pct
+    assert score_case_index(_case_of(scene, tmp_path), index).as_dict()["views"] == views

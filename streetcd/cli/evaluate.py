@@ -255,6 +255,12 @@ def _run_index(console: Any, scene: Path | None, case: Path | None, index_path: 
         f"{_num(px['truth_reported_pct'])} % reported; flagged views with no pixel on a true "
         f"change: {data['flagged_views_without_change']} of {data['flagged_views']}"
     )
+    v = data["views"]
+    console.print(
+        f"views the run flagged: {v['with_change_flagged']} of the {v['with_change']} with a "
+        f"true change ({_num(v['with_change_flagged_pct'])} %), {v['without_change_flagged']} "
+        f"of the {v['without_change']} without ({_num(v['without_change_flagged_pct'])} %)"
+    )
     t = Table(title="Labelled objects of the case" if case else "Changes of the manifest")
     cols = ("id", "kind", "type", "truth px", "flagged px", "reported px", "objects", "kept out")
     for col in cols:

@@ -23,7 +23,8 @@ the index records those labels with each object's views. Nothing here runs the d
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Mapping, Sequence
+import sqlite3
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -128,6 +129,28 @@ class ChangeScore:
 
 
 @dataclass(frozen=True)
+class ViewFlags:
+    """Which of the index's done views of the scene or case the run flagged, by whether
+    their truth has a change (outside don't-care): issue 16's per-view rates on the path a
+    night takes, not the flag rule applied to one detection (``evaluate --case``'s)."""
+
+    with_change: int = 0
+    with_change_flagged: int = 0
+    without_change: int = 0
+    without_change_flagged: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "with_change": self.with_change,
+            "with_change_flagged": self.with_change_flagged,
+            "with_change_flagged_pct": _pct(self.with_change_flagged, self.with_change),
+            "without_change": self.without_change,
+            "without_change_flagged": self.without_change_flagged,
+            "without_change_flagged_pct": _pct(self.without_change_flagged, self.without_change),
+        }
+
+
+@dataclass(frozen=True)
 class IndexScore:
     """The whole scoring of an index against a scene (see the module docstring)."""
 
@@ -141,6 +164,7 @@ class IndexScore:
     objects: tuple[ObjectScore, ...]
     changes: tuple[ChangeScore, ...]
     skipped_views: tuple[str, ...] = field(default=())  # flagged, but not in the manifest
+    view_flags: ViewFlags = field(default_factory=ViewFlags)  # the index's done views
 
     @property
     def reported_objects(self) -> list[ObjectScore]:
@@ -164,6 +188,7 @@ class IndexScore:
             "flagged_views": self.flagged_views,
             "flagged_views_without_change": self.views_without_change,
             "skipped_views": list(self.skipped_views),
+            "views": self.view_flags.as_dict(),
             "pixels": {
                 "flagged": self.flagged.as_dict(),
                 "reported": self.reported.as_dict(),
@@ -345,7 +370,8 @@ def score_index(scene: str | Path, index_path: str | Path) -> IndexScore:
         for c in manifest["changes"]
     ]
     truths = {name: partial(_truth, scene, r) for name, r in records.items()}
-    return _score(scene, index_path, truths, changes)
+    changed = {name for name, r in records.items() if any((r.get("changed_pixels") or {}).values())}
+    return _score(scene, index_path, truths, changes, changed)
 
 
 def score_case_index(case: str | Path, index_path: str | Path) -> IndexScore:
@@ -362,8 +388,12 @@ def score_case_index(case: str | Path, index_path: str | Path) -> IndexScore:
     labelled = labelled_truth(case)
     truths = {name: partial(_case_truth, *paths) for name, paths in labelled.views.items()}
     totals: dict[int, int] = {}
-    for load in truths.values():  # each change's pixels in every view, flagged or not
-        _add(totals, _per_change(load().inst))
+    changed = set()
+    for name, load in truths.items():  # each change's pixels in every view, flagged or not
+        in_view = _per_change(load().inst)
+        _add(totals, in_view)
+        if in_view:
+            changed.add(name)
     changes = [
         _Change(
             label,
@@ -373,7 +403,7 @@ def score_case_index(case: str | Path, index_path: str | Path) -> IndexScore:
         )
         for label in sorted(set(labelled.objects) | set(totals))
     ]
-    return _score(case, index_path, truths, changes)
+    return _score(case, index_path, truths, changes, changed)
 
 
 def _check_index(index_path: Path) -> None:
@@ -386,8 +416,10 @@ def _score(
     index_path: Path,
     truths: Mapping[str, Callable[[], _Truth]],
     changes: Sequence[_Change],
+    changed: Collection[str],
 ) -> IndexScore:
-    """:func:`score_index` against ``truths`` (image name -> its truth, read when called)."""
+    """:func:`score_index` against ``truths`` (image name -> its truth, read when called);
+    ``changed`` names the images whose truth has a change."""
     from streetcd.store.index import ChangeIndex
     from streetcd.store.objects import list_objects
 
@@ -395,6 +427,9 @@ def _score(
         flagged = idx.conn.execute(
             "SELECT f.view, f.mask_path, f.n_regions, coalesce(v.image, f.view) AS image"
             " FROM flagged f LEFT JOIN views v ON v.view = f.view ORDER BY f.view"
+        ).fetchall()
+        done = idx.conn.execute(
+            "SELECT coalesce(image, view) AS image, flagged FROM views WHERE status = 'done'"
         ).fetchall()
     objects = list_objects(index_path, sort="id")
     # Per view key: (object's position in ``objects``, its region labels there).
@@ -407,7 +442,7 @@ def _score(
     tally = _Tally(len(objects))
     skipped = []
     for row in flagged:
-        image = Path(str(row["image"]).split("#")[0]).name
+        image = _image_name(row["image"])
         if image not in truths:
             skipped.append(row["view"])
             continue
@@ -425,7 +460,29 @@ def _score(
         raise InputError(
             f"{index_path}: none of its {len(flagged)} flagged views is an image of {source}"
         )
-    return tally.score(source, index_path, changes, objects, tuple(skipped))
+    return tally.score(
+        source, index_path, changes, objects, tuple(skipped), _view_flags(done, truths, changed)
+    )
+
+
+def _view_flags(
+    done: Sequence[sqlite3.Row], truths: Mapping[str, object], changed: Collection[str]
+) -> ViewFlags:
+    """:class:`ViewFlags` of the index's done views that are images of the truth."""
+    with_change, without = [0, 0], [0, 0]  # views, of them flagged
+    for row in done:
+        image = _image_name(row["image"])
+        if image not in truths:
+            continue
+        tally = with_change if image in changed else without
+        tally[0] += 1
+        tally[1] += int(bool(row["flagged"]))
+    return ViewFlags(with_change[0], with_change[1], without[0], without[1])
+
+
+def _image_name(key: object) -> str:
+    """The image's file name of a view key (``name#content-hash``) or image path."""
+    return Path(str(key).split("#")[0]).name
 
 
 def _add(into: dict[int, int], more: dict[int, int]) -> None:
@@ -483,6 +540,7 @@ class _Tally:
         changes: Sequence[_Change],
         objects: Sequence[dict],
         skipped: tuple[str, ...],
+        view_flags: ViewFlags,
     ) -> IndexScore:
         scores = tuple(
             ObjectScore(
@@ -522,6 +580,7 @@ class _Tally:
             scores,
             scored,
             skipped,
+            view_flags,
         )
 
 
