@@ -335,3 +335,27 @@ def test_the_views_the_run_flagged_are_counted_by_their_truth(tmp_path):
     pct = round(100 * by[True, True] / expected["with_change"], 2)
     assert views["with_change_flagged_pct"] == pct
     assert score_case_index(_case_of(scene, tmp_path), index).as_dict()["views"] == views
+
+
+def test_a_found_change_is_placed_off_its_box_by_the_horizontal_distance(tmp_path):
+    scene, index, _ = _scene_and_index(tmp_path)
+    manifest = json.loads((scene / "manifest.json").read_text())
+    origin = np.array([E0, N0, 100.0])  # the local frame's origin in the index's CRS
+    manifest["origin"] = origin.tolist()
+    by_id = {c["instance_id"]: c for c in manifest["changes"]}
+    by_id[1]["bbox_local"] = [*(POLE - 1.0 - origin), *(POLE + 1.0 - origin)]  # around it
+    far = BOX + np.array([30.0, 40.0, 0.0])  # a box 50 m from the box that was added
+    by_id[2]["bbox_local"] = [*(far - 0.5 - origin), *(far + 0.5 - origin)]
+    (scene / "manifest.json").write_text(json.dumps(manifest))
+    d = score_index(scene, index).as_dict()
+    errors = {c["instance_id"]: c["position_error_m"] for c in d["changes"]}
+    objects = {o["id"]: o for o in list_objects(index)}
+    (box_object,) = [c["objects"][0] for c in d["changes"] if c["instance_id"] == 2]
+    x, y, _ = objects[box_object]["centroid"]
+    lo, hi = far - 0.5, far + 0.5
+    expected = np.hypot(max(lo[0] - x, 0, x - hi[0]), max(lo[1] - y, 0, y - hi[1]))
+    assert errors[1] == 0.0 and errors[2] == pytest.approx(expected, abs=1e-3)
+    assert 45.0 < errors[2] < 55.0
+    assert errors[3] is None  # no box, and no object found it
+    summary = d["position_error_m"]
+    assert summary["measured"] == 2 and summary["max"] == errors[2]

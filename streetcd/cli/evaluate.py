@@ -263,7 +263,7 @@ def _run_index(console: Any, scene: Path | None, case: Path | None, index_path: 
     )
     t = Table(title="Labelled objects of the case" if case else "Changes of the manifest")
     cols = ("id", "kind", "type", "truth px", "flagged px", "reported px", "objects", "kept out")
-    for col in cols:
+    for col in (*cols, "off by m"):
         t.add_column(col, justify="left" if col in ("kind", "type") else "right")
     for c in data["changes"]:
         t.add_row(
@@ -275,10 +275,13 @@ def _run_index(console: Any, scene: Path | None, case: Path | None, index_path: 
             str(c["reported_px"]),
             str(len(c["objects"])),
             str(len(c["kept_out"])),
+            _num(c["position_error_m"], 2),
         )
     console.print(t)
     console.print(
-        "(objects: reported as changes and matching it; kept out: transients matching it)"
+        "(objects: reported as changes and matching it; kept out: transients matching it; "
+        "off by: how far its largest reported object's centroid lies from its box, "
+        "horizontally, where the truth gives a box)"
     )
     console.print(
         f"change objects: {data['objects_reported']} reported, {data['objects_kept_out']} kept "
@@ -287,6 +290,12 @@ def _run_index(console: Any, scene: Path | None, case: Path | None, index_path: 
         f"exactly one object; object precision {_num(data['object_precision_pct'])} %, "
         f"recall {_num(data['object_recall_pct'])} %"
     )
+    err = data["position_error_m"]
+    if err["measured"]:
+        console.print(
+            f"found changes placed off their box by a median {_num(err['median'], 2)} m, at "
+            f"most {_num(err['max'], 2)} m ({err['measured']} measured)"
+        )
     t = Table(title="Transients kept out, by reason")
     for col in ("reason", "objects", "pixels", "on true change"):
         t.add_column(col, justify="left" if col == "reason" else "right")

@@ -23,7 +23,9 @@ the index records those labels with each object's views. Nothing here runs the d
 from __future__ import annotations
 
 import json
+import math
 import sqlite3
+import statistics
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -86,6 +88,7 @@ class ObjectScore:
     by_change: dict[int, int]
     match: int | None
     views: tuple[str, ...]
+    centroid: tuple[float, float, float] = (math.nan, math.nan, math.nan)  # the index's CRS
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -114,6 +117,9 @@ class ChangeScore:
     reported_px: int
     objects: tuple[str, ...]
     kept_out: tuple[str, ...]
+    # how far (metres, horizontally) the centroid of the reported object holding most of its
+    # pixels lies from its box (0 inside); None without a box or a reported object
+    position_error_m: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -125,6 +131,7 @@ class ChangeScore:
             "reported_px": self.reported_px,
             "objects": list(self.objects),
             "kept_out": list(self.kept_out),
+            "position_error_m": self.position_error_m,
         }
 
 
@@ -205,6 +212,7 @@ class IndexScore:
             "changes_one_object": sum(len(c.objects) == 1 for c in self.changes),
             "object_precision_pct": _pct(len(matched), len(reported)),
             "object_recall_pct": _pct(len(found), len(self.changes)),
+            "position_error_m": _errors_summary(self.changes),
             "transient_reasons": reasons,
             "changes": [c.as_dict() for c in self.changes],
             "objects": [o.as_dict() for o in self.objects],
@@ -347,6 +355,7 @@ class _Change:
     kind: str
     type: str
     truth_px: int
+    box: tuple[float, ...] | None = None  # (min x, y, z, max x, y, z) in the index's CRS
 
 
 def score_index(scene: str | Path, index_path: str | Path) -> IndexScore:
@@ -366,6 +375,7 @@ def score_index(scene: str | Path, index_path: str | Path) -> IndexScore:
             str(c.get("kind", "")),
             str(c.get("type", "")),
             truth_px.get(int(c["instance_id"]), 0),
+            _box_in_crs(c.get("bbox_local"), manifest.get("origin")),
         )
         for c in manifest["changes"]
     ]
@@ -552,6 +562,7 @@ class _Tally:
                 self.by_change[k],
                 _match(self.by_change[k], self.where[k].total),
                 tuple(sorted(self.views[k])),
+                _xyz(o["centroid"]),
             )
             for k, o in enumerate(objects)
             if self.views[k]  # objects of views of another scene are left out
@@ -566,6 +577,7 @@ class _Tally:
                 self.reported_by_change.get(c.id, 0),
                 tuple(o.id for o in scores if o.match == c.id and o.transient is None),
                 tuple(o.id for o in scores if o.match == c.id and o.transient is not None),
+                _position_error(c, scores),
             )
             for c in changes
         )
@@ -582,6 +594,42 @@ class _Tally:
             skipped,
             view_flags,
         )
+
+
+def _xyz(point: Sequence[float]) -> tuple[float, float, float]:
+    return float(point[0]), float(point[1]), float(point[2])
+
+
+def _box_in_crs(box_local: Any, origin: Any) -> tuple[float, ...] | None:
+    """A manifest change's ``bbox_local`` (6 numbers, the scene's local frame) in the CRS the
+    index is in (the local frame plus the manifest's ``origin``); None without either."""
+    if not isinstance(box_local, list) or len(box_local) != 6 or not isinstance(origin, list):
+        return None
+    o = [float(v) for v in origin[:3]]
+    return tuple(float(v) + o[k % 3] for k, v in enumerate(box_local))
+
+
+def _position_error(change: _Change, scores: Sequence[ObjectScore]) -> float | None:
+    """The horizontal distance (metres) from the centroid of the reported object holding the
+    most of ``change``'s pixels to the change's box (0 inside); None without a box or a
+    reported object matching it."""
+    mine = [o for o in scores if o.match == change.id and o.transient is None]
+    if change.box is None or not mine:
+        return None
+    best = max(mine, key=lambda o: (o.by_change.get(change.id, 0), o.id))
+    x, y = best.centroid[0], best.centroid[1]
+    lo_x, lo_y, _, hi_x, hi_y, _ = change.box
+    dx = max(lo_x - x, 0.0, x - hi_x)
+    dy = max(lo_y - y, 0.0, y - hi_y)
+    return round(math.hypot(dx, dy), 3)
+
+
+def _errors_summary(changes: Sequence[ChangeScore]) -> dict[str, Any]:
+    """The found changes' position errors: how many were measured, their median and largest."""
+    errors = sorted(c.position_error_m for c in changes if c.position_error_m is not None)
+    if not errors:
+        return {"measured": 0, "median": None, "max": None}
+    return {"measured": len(errors), "median": statistics.median(errors), "max": errors[-1]}
 
 
 def _truth_pixels(manifest: dict[str, Any]) -> dict[int, int]:
