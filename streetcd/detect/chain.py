@@ -513,10 +513,9 @@ def _locating(
     params: DetectParams,
 ) -> Working | None:
     """The view and its neighbours at the size where the regions' depths are measured
-    (:func:`streetcd.detect.locate.working_set`); None when that is off or no neighbour."""
+    (:func:`streetcd.detect.locate.working_set`); None without a neighbour. Its callers ask
+    only when ``locate.enabled`` and the view has regions."""
     lp = params.locate
-    if not lp.enabled:
-        return None
     return working_set(
         image,
         surf.depth,

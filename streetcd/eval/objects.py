@@ -399,7 +399,9 @@ def score_case_index(case: str | Path, index_path: str | Path) -> IndexScore:
     truths = {name: partial(_case_truth, *paths) for name, paths in labelled.views.items()}
     totals: dict[int, int] = {}
     changed = set()
-    for name, load in truths.items():  # each change's pixels in every view, flagged or not
+    # each change's pixels in every view, flagged or not (a flagged view's truth is read
+    # again when it is scored: one view's truth in memory at a time, as score_index)
+    for name, load in truths.items():
         in_view = _per_change(load().inst)
         _add(totals, in_view)
         if in_view:
