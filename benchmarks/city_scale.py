@@ -57,7 +57,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from query_speed import middle_bbox  # noqa: E402  (a box around a change, not between copies)
+from query_speed import COMMAND_ENV, middle_bbox  # noqa: E402  (a box around a change, not between copies)
 from throughput import load, warm_up  # noqa: E402  (the sibling benchmark's helpers)
 
 from streetcd.config import RunParams  # noqa: E402
@@ -375,7 +375,7 @@ def query_times(index: Path, repeat: int = 5) -> list[dict[str, Any]]:
         sub, inproc = [], []
         for _ in range(repeat):
             t = time.perf_counter()
-            done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            done = subprocess.run(cmd, capture_output=True, text=True, check=True, env=COMMAND_ENV)
             sub.append(time.perf_counter() - t)
             t = time.perf_counter()
             text = run_query(index, **kwargs)
@@ -395,7 +395,7 @@ def query_times(index: Path, repeat: int = 5) -> list[dict[str, Any]]:
     times = []
     for _ in range(repeat):
         t = time.perf_counter()
-        subprocess.run(floor, capture_output=True, check=True)
+        subprocess.run(floor, capture_output=True, check=True, env=COMMAND_ENV)
         times.append(time.perf_counter() - t)
     rows.append(
         {

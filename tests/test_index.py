@@ -285,7 +285,7 @@ def test_a_schema_4_index_is_read_as_it_is_and_migrated_when_written(tmp_path):
         assert [g[0] for g in got] == [None, 0.5]
         assert [r.regions[0].depth_fraction for r in idx.query()] == [None, 0.5]
     with ChangeIndex(path, readonly=True) as idx:
-        assert idx._meta("schema_version") == SCHEMA_VERSION == "5"
+        assert idx._meta("schema_version") == SCHEMA_VERSION == "6"
 
 
 def test_an_index_of_an_older_schema_is_refused_and_left_untouched(tmp_path):

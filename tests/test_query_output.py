@@ -3,6 +3,7 @@ entry a line parses to the same objects and views as the standard library's enco
 the same records; the read side loads no numpy (docs/BENCHMARKS.md, query speed)."""
 
 import json
+import sqlite3
 import subprocess
 import sys
 from dataclasses import asdict
@@ -16,6 +17,7 @@ from streetcd.cli.main import query as query_cmd
 from streetcd.cli.query import run_query
 from streetcd.store import object_list, objects
 from streetcd.store.index import ChangeIndex
+from streetcd.store.records import ViewRecord
 
 HEAVY = ("numpy", "zarr", "numba", "yaml", "streetcd.config", "streetcd.types")
 HEAVY += ("streetcd.geometry", "streetcd.detect", "streetcd.store.objects")
@@ -180,3 +182,79 @@ def loaded_by_a_query(
         check=True,
     )
     return json.loads(out.stderr.strip().splitlines()[-1].replace("'", '"')), out.stdout
+
+
+SELECTIONS = [
+    {},
+    {"transients": False},
+    {"kind": "added"},
+    {"status": "awaiting"},
+    {"status": "transient"},
+    {"sort": "id", "limit": 2},
+    {"since": "2026-11-08", "min_confidence": 0.1},
+]
+
+
+def kept_rows(index):
+    with ChangeIndex(index, readonly=True) as idx:
+        return dict(idx.conn.execute("SELECT id, entry FROM object_json").fetchall())
+
+
+def same_as_the_listing(index):
+    for selection in SELECTIONS:
+        entries = object_list.object_entries(index, **selection)
+        assert [json.loads(e) for e in entries] == object_list.list_objects(index, **selection)
+
+
+def test_the_kept_entries_list_what_the_tables_hold_reviews_and_republished_views_too(tmp_path):
+    """The JSON listing reads each object's entry as the rebuild kept it (object_json): it
+    must parse to what list_objects makes from the tables, after a review (written apart)
+    and after a view of an object is published again without a rebuild (its entry dropped,
+    the object made from the tables)."""
+    index = tmp_path / "change_index.sqlite"
+    night(index, "aaa", [("removed", POLE), ("added", BOX)], "2026-11-01")
+    night(index, "bbb", [("removed", POLE), ("added", BOX), ("added", BIN)], "2026-11-08")
+    every = object_list.list_objects(index)
+    street = [o for o in every if o["transient"] is None]
+    assert len(kept_rows(index)) == len(street) >= 2 and len(every) > len(street)
+    same_as_the_listing(index)
+
+    objects.record_review(index, street[0]["id"], "false-alarm", who="ana", note="ünïcode")
+    same_as_the_listing(index)
+    assert object_list.list_objects(index, status="false_alarm")[0]["review"]["who"] == "ana"
+
+    kept = kept_rows(index)
+    others = {v["view"] for o in street[:1] + street[2:] for v in o["views"]}
+    view = next(v["view"] for v in street[1]["views"] if v["view"] not in others)
+    with ChangeIndex(index) as idx:  # the view done again: unflagged now
+        idx.publish("r2", [ViewRecord(view, "h2", "p", street[1]["segment"], "done")])
+    left = kept_rows(index)
+    assert len(left) == len(kept) - 1  # street[1]'s entry went...
+    assert all(kept[k] == v for k, v in left.items())  # ...the others stay as they were
+    again = next(o for o in object_list.list_objects(index) if o["id"] == street[1]["id"])
+    assert next(v for v in again["views"] if v["view"] == view)["overlay"] is None
+    same_as_the_listing(index)
+
+
+def test_an_index_of_schema_5_is_listed_from_its_tables_and_gains_the_entries_when_written(
+    tmp_path,
+):
+    index = tmp_path / "change_index.sqlite"
+    segments = night(index, "aaa", [("removed", POLE), ("added", BOX)], "2026-11-01")
+    listing = run_query(index, fmt="json", transients=True)
+    con = sqlite3.connect(index)
+    con.executescript(
+        "DROP TABLE object_json; DROP INDEX object_views_view;"
+        " UPDATE meta SET value = '5' WHERE key = 'schema_version';"
+    )
+    con.close()
+    before = index.read_bytes()
+    assert run_query(index, fmt="json", transients=True) == listing
+    same_as_the_listing(index)
+    assert index.read_bytes() == before  # read as it is
+    with ChangeIndex(index) as idx:
+        assert idx.file_version == "6"
+        assert idx.conn.execute("SELECT count(*) FROM object_json").fetchone()[0] == 0
+        objects.rebuild_objects(idx, segments)
+    assert len(kept_rows(index)) == 2
+    assert run_query(index, fmt="json", transients=True) == listing

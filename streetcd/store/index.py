@@ -13,6 +13,9 @@ Tables
 ``regions``   change regions of flagged views: centroid and box in the CRS, dominant class of
               the old cloud there.
 ``segments_rtree``, ``regions_rtree``  R*Trees over the x/y boxes of segments and regions.
+``objects``, ``object_views``, ``objects_rtree``, ``reviews``  the change objects and their
+              reviews (:mod:`streetcd.store.objects`); ``object_json`` each object's listing
+              entry, kept with it (:mod:`streetcd.store.object_list`).
 
 The index holds the current state: one row per view name, its latest result. Writes are one
 transaction per batch (:meth:`ChangeIndex.publish`), so a run killed at any moment leaves
@@ -49,10 +52,25 @@ if TYPE_CHECKING:
 
     from streetcd.store.records import FlaggedRow, RegionRecord, SegmentRow, ViewRecord
 
-SCHEMA_VERSION = "5"
+SCHEMA_VERSION = "6"
+# Each change object as `streetcd query --format json` lists it before any review (a review
+# is written apart, by the review page, and put in when listed): made by the objects' rebuild
+# (transients left out, store/object_list.py::write_entries), dropped with its object
+# and when a view it lists is published again, so an entry always reads what the joins of
+# objects, object_views, views and flagged would give. The whole listing of a 10,000-view
+# night joined 14,000 object views by their text keys, most of its time (docs/BENCHMARKS.md).
+_OBJECT_JSON = (
+    "CREATE TABLE IF NOT EXISTS object_json (id INTEGER PRIMARY KEY, entry TEXT NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS object_views_view ON object_views(view)",
+)
 # Older schemas this one reads as they are and migrates when opened for writing: each adds
-# columns a reader of the older file never asks for (version 5: regions.depth_fraction).
-MIGRATIONS = {"4": ("ALTER TABLE regions ADD COLUMN depth_fraction REAL",)}
+# what a reader of the older file can do without (version 5: regions.depth_fraction;
+# version 6: object_json, which a reader of an older file does without, and the index that
+# finds the objects listing a view).
+MIGRATIONS = {
+    "4": ("ALTER TABLE regions ADD COLUMN depth_fraction REAL",),
+    "5": _OBJECT_JSON,
+}
 # ... and what stands in for those columns when such a file is read as it is
 _REGIONS_LACK = {"4": ", NULL AS depth_fraction"}
 # ChangeIndex.query's orders, by its ``sort``: time is the capture's (else the detection's)
@@ -277,7 +295,7 @@ class ChangeIndex:
             self.conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (version,))
 
     def _create(self) -> None:
-        for statement in _SCHEMA.split(";"):
+        for statement in (*_SCHEMA.split(";"), *_OBJECT_JSON):
             if statement.strip():
                 self.conn.execute(statement)
         self.conn.execute(
@@ -404,6 +422,11 @@ class ChangeIndex:
                 )
                 if r.flagged:
                     self._add_flagged(run_id, now, r)
+                self.conn.execute(
+                    "DELETE FROM object_json WHERE id IN (SELECT o.id FROM object_views ov"
+                    " JOIN objects o ON o.object_id = ov.object_id WHERE ov.view = ?)",
+                    (r.view,),
+                )
 
     def _drop_flagged(self, view: str) -> None:
         row = self.conn.execute("SELECT id FROM flagged WHERE view = ?", (view,)).fetchone()

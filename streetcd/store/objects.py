@@ -51,7 +51,7 @@ from streetcd.store.object_list import LIST_STATUSES as LIST_STATUSES
 from streetcd.store.object_list import REVIEW_STATUSES as REVIEW_STATUSES
 from streetcd.store.object_list import check_fraction as check_fraction
 from streetcd.store.object_list import list_objects as list_objects
-from streetcd.store.object_list import normalise_status
+from streetcd.store.object_list import normalise_status, write_entries
 from streetcd.store.records import camera_from_json
 
 if TYPE_CHECKING:
@@ -305,6 +305,7 @@ def _rebuild_segment(
         n += _write_object(
             conn, segment, object_id, members, views, ground_class, min_region_fraction
         )
+    write_entries(conn, segment)
     return n
 
 
@@ -425,6 +426,10 @@ def _image_px(camera: str | None) -> int | None:
 
 
 def _drop_objects(conn: sqlite3.Connection, segment: str) -> None:
+    conn.execute(
+        "DELETE FROM object_json WHERE id IN (SELECT id FROM objects WHERE segment_id = ?)",
+        (segment,),
+    )
     conn.execute(
         "DELETE FROM object_views WHERE object_id IN"
         " (SELECT object_id FROM objects WHERE segment_id = ?)",
