@@ -95,8 +95,12 @@ def rows_as_json(rows: Sequence[FlaggedRow | ViewRow]) -> list[dict]:
             "segment": r.segment_id,
             "score": r.score,
         }
-        d.update((name, getattr(r, name)) for name in row_fields)
-        d["regions"] = [{name: getattr(g, name) for name in region_fields} for g in r.regions]
+        if isinstance(r, tuple):  # a ViewRow and its RegionRows: zip, not 12 lookups
+            d.update(zip(row_fields, r, strict=True))
+            d["regions"] = [dict(zip(region_fields, g, strict=True)) for g in r.regions]
+        else:
+            d.update((name, getattr(r, name)) for name in row_fields)
+            d["regions"] = [{name: getattr(g, name) for name in region_fields} for g in r.regions]
         out.append(d)
     return out
 
