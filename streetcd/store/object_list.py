@@ -89,10 +89,10 @@ def object_entries(index_path: str | Path, **selection: Any) -> list[str]:
 
     Read from ``object_json``, where the rebuild keeps each object's entry as it is listed
     unreviewed (a review is put in here): `streetcd query --format json` of a 10,000-view
-    night's 2,490 objects
-    spent ~80 of its ~120 ms making 14,000 view dicts from joins by text keys. An object
-    without a kept entry (an index of an older schema, read as it is; a view of it published
-    since its rebuild) is made as list_objects makes it.
+    night's 2,490 objects spent ~80 of its ~120 ms making 14,000 view dicts from joins by
+    text keys. An object without a kept entry (a transient; an index of an older schema,
+    read as it is; a view of it published since its rebuild) is made as list_objects
+    makes it.
     """
     sql, args = _objects_sql("o.id, r.status, r.who, r.at, r.note", **selection)
     with ChangeIndex(index_path, readonly=True) as idx:
@@ -107,7 +107,7 @@ def object_entries(index_path: str | Path, **selection: Any) -> list[str]:
         entry = kept[rowid]
         if review[0] is not None:  # the kept entry ends with the review it had: none
             reviewed = _dumps(dict(zip(REVIEW_FIELDS, review, strict=True)))
-            entry = f"{entry[: -len(NO_REVIEW)]},{_dumps('review')}:{reviewed}}}"
+            entry = entry[: -len(NO_REVIEW)] + ',"review":' + reviewed + "}"
         out.append(entry)
     return out
 
