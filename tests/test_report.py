@@ -499,3 +499,20 @@ def test_query_cuts_objects_as_sorting_all_of_them_would(night, sort, limit, tra
     expected = expected if limit is None else expected[:limit]
     text = run_query(night.index, fmt="json", sort=sort, limit=limit, transients=transients)
     assert json.loads(text)["objects"] == expected
+
+
+def test_export_paths_are_relative_to_the_run_folder_through_links(tmp_path):
+    from streetcd.report.export import _relative_to
+
+    run = tmp_path / "runs" / "night1"
+    (run / "masks" / "seg").mkdir(parents=True)
+    images = tmp_path / "photos"
+    images.mkdir()
+    (tmp_path / "via").symlink_to(run)  # the run folder reached through a link
+    relative = _relative_to(tmp_path / "via")
+    assert relative(str(run / "masks" / "seg" / "a.png")) == "masks/seg/a.png"
+    assert relative(str(run / "masks" / "seg" / "b.png")) == "masks/seg/b.png"
+    assert relative(str(tmp_path / "via" / "index.sqlite")) == "index.sqlite"
+    assert relative(str(images / "c.jpg")) == "../../photos/c.jpg"
+    assert relative(None) == relative("") == ""
+    assert _relative_to(None)(str(images / "c.jpg")) == str(images / "c.jpg")
