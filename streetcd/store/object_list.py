@@ -197,12 +197,25 @@ def _made_entries(conn: sqlite3.Connection, ids: Sequence[int]) -> dict[int, str
             chunk,
         ).fetchall()
     views = _views_of(conn, [r["object_id"] for r in rows])
-    return {r["id"]: _dumps(_as_dict(r, views.get(r["object_id"], []))) for r in rows}
+    dumps = _dumps if len(rows) < ORJSON_FROM else _orjson_dumps
+    return {r["id"]: dumps(_as_dict(r, views.get(r["object_id"], []))) for r in rows}
 
 
 def _dumps(value: object) -> str:
     """Compact JSON, non-ASCII kept (the change index holds no NaN or infinity)."""
     return json.dumps(value, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+
+
+# orjson encodes many entries ~3x faster than the standard library (the 9,660 transients of a
+# 10,000-view city, made from the tables when listed) but takes ~22 ms to import
+ORJSON_FROM = 500
+
+
+def _orjson_dumps(value: object) -> str:
+    """:func:`_dumps` by orjson (the same JSON; a float may be written in another form)."""
+    import orjson
+
+    return orjson.dumps(value).decode()
 
 
 def _filters(
