@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import sqlite3
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from streetcd import classes as C
@@ -79,8 +79,24 @@ def list_objects(
     )
     with ChangeIndex(index_path, readonly=True) as idx:
         rows = idx.conn.execute(sql, args).fetchall()
-        views = _views_of(idx.conn, [r["object_id"] for r in rows]) if with_views else {}
-        return [_as_dict(r, views.get(r["object_id"], [])) for r in rows]
+        if not with_views:
+            return [_as_dict(r, []) for r in rows]
+        # the entries the rebuild keeps (object_entries), parsed: the views' joins were
+        # most of a whole listing's time; the others' views are read from the tables
+        kept = _kept_entries(idx, [r["id"] for r in rows])
+        made = [r["object_id"] for r in rows if r["id"] not in kept]
+        views = _views_of(idx.conn, made) if made else {}
+    loads = _loads(len(kept))
+    out = []
+    for r in rows:
+        entry = kept.get(r["id"])
+        if entry is None:
+            out.append(_as_dict(r, views.get(r["object_id"], [])))
+        else:
+            d = loads(entry)
+            d["review"] = _review(r)
+            out.append(d)
+    return out
 
 
 def object_entries(index_path: str | Path, **selection: Any) -> list[str]:
@@ -211,6 +227,16 @@ def _dumps(value: object) -> str:
 ORJSON_FROM = 500
 
 
+def _loads(n_entries: int) -> Callable[[str], Any]:
+    """A JSON parser for ``n_entries`` entries: orjson's from :data:`ORJSON_FROM` on (the
+    same values: both read the shortest float text back to the same double)."""
+    if n_entries < ORJSON_FROM:
+        return json.loads
+    import orjson
+
+    return orjson.loads
+
+
 def _orjson_dumps(value: object) -> str:
     """:func:`_dumps` by orjson (the same JSON; a float may be written in another form)."""
     import orjson
@@ -290,10 +316,13 @@ def _views_of(conn: sqlite3.Connection, object_ids: Sequence[str]) -> dict[str, 
     return out
 
 
+def _review(r: sqlite3.Row) -> dict | None:
+    if r["r_status"] is None:
+        return None
+    return {"status": r["r_status"], "who": r["r_who"], "at": r["r_at"], "note": r["r_note"]}
+
+
 def _as_dict(r: sqlite3.Row, views: list[dict]) -> dict:
-    review = None
-    if r["r_status"] is not None:
-        review = {"status": r["r_status"], "who": r["r_who"], "at": r["r_at"], "note": r["r_note"]}
     return {
         "id": r["object_id"],
         "kind": r["kind"],
@@ -310,7 +339,7 @@ def _as_dict(r: sqlite3.Row, views: list[dict]) -> dict:
         "first_seen": r["first_seen"],
         "last_seen": r["last_seen"],
         "transient": r["transient"],
-        "review": review,  # last: object_entries puts it in the end of a kept entry
+        "review": _review(r),  # last: object_entries puts it in the end of a kept entry
     }
 
 
