@@ -63,6 +63,8 @@ def list_objects(
         for people (docs/DECISIONS.md, 2026-11-25).
     with_views : False leaves each object's ``views`` list empty (its counts stay): a table
         of every object of a 10,000-view night spent two thirds of its time reading them.
+        True: an object with an entry kept by the rebuild (:func:`object_entries`) is that
+        entry parsed, its review added; the others are made from the tables.
     Opens the index read-only (never creates or writes a file).
     """
     sql, args = _objects_sql(
