@@ -309,3 +309,17 @@ def test_an_index_of_an_older_schema_is_refused_and_left_untouched(tmp_path):
         0,
     )
     con.close()
+
+
+def test_a_migration_finds_a_column_already_there(tmp_path):
+    """A file whose version says 4 but which has schema 5's column (its version set back by
+    hand) is brought to this schema, not refused with "duplicate column name"."""
+    path = tmp_path / "change_index.sqlite"
+    with ChangeIndex(path) as idx:
+        idx.publish("r", [ViewRecord("a.jpg", "h", "p", None, "done", flagged=True, score=0.5)])
+    con = sqlite3.connect(path)
+    con.executescript("UPDATE meta SET value = '4' WHERE key = 'schema_version';")
+    con.close()
+    with ChangeIndex(path) as idx:
+        assert idx._meta("schema_version") == SCHEMA_VERSION
+        assert [r.view for r in idx.query()] == ["a.jpg"]

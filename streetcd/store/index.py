@@ -295,9 +295,20 @@ class ChangeIndex:
             version = self._meta("schema_version")
             while version in MIGRATIONS:
                 for statement in MIGRATIONS[version]:
-                    self.conn.execute(statement)
+                    if not self._column_there(statement):
+                        self.conn.execute(statement)
                 version = str(int(version) + 1)
             self.conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (version,))
+
+    def _column_there(self, statement: str) -> bool:
+        """Whether ``statement`` adds a column (``ALTER TABLE t ADD COLUMN c …``) that the
+        table has already: a file whose version was set back by hand, or copied from a
+        half-upgraded one, failed with "duplicate column name"."""
+        words = statement.split()
+        if [w.upper() for w in words[:2] + words[3:5]] != ["ALTER", "TABLE", "ADD", "COLUMN"]:
+            return False
+        table, column = words[2], words[5]
+        return any(r[1] == column for r in self.conn.execute(f"PRAGMA table_info({table})"))
 
     def _create(self) -> None:
         for statement in (*_SCHEMA.split(";"), *_OBJECT_JSON):
