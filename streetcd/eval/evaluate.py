@@ -25,6 +25,7 @@ from streetcd.detect.chain import DetectionResult, detect_view
 from streetcd.detect.correlate import stretch_histogram
 from streetcd.detect.graphcut import cut_changes, node_energy
 from streetcd.detect.refine import refined_mask
+from streetcd.detect.regions import cut_apart
 from streetcd.errors import CorruptFileError, InputError, MissingInputError
 from streetcd.eval.metrics import Summary, TypeRow, ViewScore, per_type_table, score_view, summarize
 from streetcd.geometry.neighbours import select_neighbours
@@ -235,10 +236,13 @@ def regraphcut(
     energy: np.ndarray | None = None,
     refine: bool = True,
 ) -> np.ndarray:
-    """The graph cut (eq. 6–9), the speckle filter and, with ``refine`` and
-    ``params.refine.enabled``, the outline refinement (:mod:`streetcd.detect.refine`) again on one
-    view's node energy (or ``energy``), depth, classes and superpixels (reused: the switches
-    of eq. 8 do not change them) with other graph-cut parameters; (H, W) bool mask."""
+    """The graph cut (eq. 6–9), the speckle filter and, with ``refine``, the detector's steps
+    after them (the outline refinement of :mod:`streetcd.detect.refine` when
+    ``params.refine.enabled``, then an old vehicle's changed pixels cut apart from the rest,
+    :func:`~streetcd.detect.regions.cut_apart`) again on one view's node energy (or
+    ``energy``), depth, classes and superpixels (reused: the switches of eq. 8 do not change
+    them) with other graph-cut parameters; (H, W) bool mask. ``refine`` False: the paper's
+    steps alone."""
     stretched = stretch_histogram(image, params.correlate.stretch_percentiles)
     mask = cut_changes(
         result.node_energy if energy is None else energy,
@@ -248,7 +252,10 @@ def regraphcut(
         gparams,
         labels=result.superpixels,
     ).mask
-    return refined_mask(image, mask, replace(params, graphcut=gparams)) if refine else mask
+    if not refine:
+        return mask
+    mask = refined_mask(image, mask, replace(params, graphcut=gparams))
+    return cut_apart(mask, result.classes, params.refine.apart_classes)
 
 
 def _truth(scene: Scene, rec: dict[str, Any]) -> dict[str, np.ndarray]:
