@@ -145,6 +145,7 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.detect.graphcut import cut_changes, node_energy, superpixels
     from streetcd.detect.refine import refined_mask
     from streetcd.detect.regions import changed_regions, cut_apart
+    from streetcd.detect.roles import road_told
     from streetcd.detect.surface import (
         _point_spacing,
         _zbuffer_params_for,
@@ -216,7 +217,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     t1 = time.perf_counter()
     labels = superpixels(stretched, surf.classes, params.graphcut)
     t2 = time.perf_counter()
-    change, _ = fuse_appearance(image, surf, change, local, params)
+    ground = kind == "colour" and road_told(cloud.classification, params.classes)
+    change, _ = fuse_appearance(image, surf, change, local, params, ground=ground)
     t3 = time.perf_counter()
     if params.texture.enabled and greys is not None:
         texture = _texture(*greys, surf, local, params, working)

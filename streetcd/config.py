@@ -26,6 +26,7 @@ from typing import Any
 import yaml
 
 from streetcd import classes
+from streetcd.classes import GROUND
 from streetcd.errors import InputError
 
 REFERENCE_WIDTH_PX = 4000
@@ -326,6 +327,11 @@ class AppearanceParams:
     enabled: bool = True
     weight: float = 0.6  # k: the fused change is max(C_p, k · A_p) (tuned, docs/TUNING.md)
     classes: tuple[int, ...] = classes.INVENTORY  # where the reference colours are checked
+    # our addition (issue 16): checked as well, against real colours only and only when the
+    # cloud tells its road from its ground (:func:`streetcd.detect.roles.road_told`): an
+    # added bench or bin stands on the pavement, where eq. 5 sees little (docs/TUNING.md,
+    # thirtieth round); the road is left out (cars come and go on it); () for none
+    ground_classes: tuple[int, ...] = (GROUND,)
     # gaps narrower than this (px at REFERENCE_WIDTH_PX) inside an inventory object are its
     # footprint too (a railing's see-through gaps); 0 checks the class pixels only
     gap_px: float = 128.0
@@ -355,6 +361,7 @@ class AppearanceParams:
 
     def __post_init__(self) -> None:
         _codes(self, "appearance.classes", "classes")
+        _codes(self, "appearance.ground_classes", "ground_classes")
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
         _check(
             0 <= self.intensity_same_rgb < self.intensity_differ_rgb,
@@ -777,6 +784,8 @@ class Config:
             del detect["locate"]
         if self.detect.appearance.transfer == "linear":  # Reinhard's: older hashes hold
             del detect["appearance"]["transfer"]
+        if not self.detect.appearance.ground_classes:  # the inventory alone: older hashes hold
+            del detect["appearance"]["ground_classes"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
             for key in [k for k in detect["appearance"] if k.startswith("intensity")]:
                 del detect["appearance"][key]

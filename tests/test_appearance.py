@@ -3,6 +3,8 @@ distance and where it is checked, on small exact images."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -196,3 +198,33 @@ def test_registration_bands_are_opened_away_and_objects_kept():
     changed[40:50, 40:60] = (40, 40, 200)  # the board is now blue: a change 20 × 10 px
     a = appearance_change(changed, ref, valid, classes, registration_px=2)
     assert a[40:50, 40:60].min() > 0.5  # keeps its whole extent
+
+
+def test_a_bench_on_the_pavement_is_seen_only_when_the_ground_is_checked():
+    """fuse_appearance with ``ground``: the ground role is checked as well (an added bench in
+    front of the pavement); without it, and on the road, it is not."""
+    from streetcd.config import DetectParams
+    from streetcd.detect.chain import fuse_appearance
+    from streetcd.detect.surface import ViewSurface
+    from streetcd.types import Intrinsics, Pose, View
+
+    ref = np.full((H, W, 3), (140, 135, 130), np.uint8)
+    ref[::5] = (110, 105, 100)  # paving joints: a distribution for the transfer
+    classes = np.full((H, W), cls.GROUND, np.uint8)
+    classes[:, 60:] = cls.ROAD
+    image = ref.copy()
+    image[40:46, 20:36] = (200, 40, 40)  # a red bench on the pavement
+    image[40:46, 70:86] = (40, 40, 200)  # a blue car on the road
+    surf = ViewSurface(np.full((H, W), 10.0, np.float32), classes, np.ones((H, W), bool), ref)
+    view = View("v", Intrinsics(W, H, 80.0, 80.0, W / 2, H / 2), Pose(np.eye(3), np.zeros(3)))
+    params = DetectParams()
+    zero = np.zeros((H, W), np.float32)
+    fused, a = fuse_appearance(image, surf, zero, view, params, ground=True)
+    assert a is not None
+    assert a[42:44, 24:32].min() > 0.5 and fused[42:44, 24:32].min() > 0.3
+    assert a[:, 60:].max() == 0.0  # the road is never checked
+    _, off = fuse_appearance(image, surf, zero, view, params)
+    assert off is not None and off.max() == 0.0
+    none = dataclasses.replace(params, appearance=AppearanceParams(ground_classes=()))
+    _, empty = fuse_appearance(image, surf, zero, view, none, ground=True)
+    assert empty is not None and empty.max() == 0.0

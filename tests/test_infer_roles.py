@@ -19,6 +19,7 @@ from streetcd.detect.roles import (
     cloud_roles,
     in_roles,
     infers,
+    road_told,
     role_codes,
 )
 from streetcd.errors import InputError
@@ -289,3 +290,24 @@ def test_in_roles_is_numpys_isin(codes):
     assert got.dtype == bool and got.shape == raster.shape
     assert np.array_equal(got, np.isin(raster, codes))
     assert in_roles(raster[:0], codes).shape == (0, 53)
+
+
+def test_the_road_is_told_from_the_ground_only_by_the_clouds_own_classes(scene):
+    """The reference-colour check looks at the ground only where the cloud tells its road
+    from it (streetcd.detect.roles.road_told): inferred roles give both one role."""
+    xyz, want = scene
+    auto = ClassMap()
+    with_road = want.copy()
+    ground = np.flatnonzero(want == classes.GROUND)
+    assert len(ground) > 0.02 * len(want)
+    with_road[ground[: len(ground) // 2]] = classes.ROAD
+    assert road_told(with_road, auto)
+    assert not road_told(want, auto)  # no point is road
+    mostly_flat = with_road.copy()
+    mostly_flat[mostly_flat != classes.ROAD] = classes.UNCLASSIFIED  # the rest inferred
+    assert infers(mostly_flat, auto) and not road_told(mostly_flat, auto)
+    assert road_told(mostly_flat, ClassMap(infer="off"))  # nothing inferred: the road is told
+    few = want.copy()
+    few[ground[: int(0.005 * len(want))]] = classes.ROAD  # 0.5 % road: under the 1 % share
+    assert not road_told(few, auto)
+    assert not road_told(np.empty(0, np.uint8), auto)

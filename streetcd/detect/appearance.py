@@ -26,14 +26,19 @@ compared after
    so cast shadows (darker, same hue) that the scan did not have count little:
    ``A_p = min(1, w_c · ‖ĉ_I − ĉ_M‖₁ + w_b · max(0, |ln(ΣI / ΣM)| − t_b))``.
 
-It is checked only on the **inventory classes** (poles, signs, railings, furniture), over their
+It is checked on the **inventory classes** (poles, signs, railings, furniture), over their
 footprint with see-through gaps closed (a railing's bars are a few pixels wide; the hedge
 that replaced it stands in the gaps too, where the old surface is the wall behind): there
-the question is whether the object is still there, and façades, ground and trees differ from
-their scan for reasons that are no change (glass reflects the sky, foliage moves, shadows
-move). New objects in front of façades and ground are left to eq. 5, which sees them by their
-geometry. :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before the node
-energy of eq. 7; ``AppearanceParams(enabled=False)`` is the paper's method.
+the question is whether the object is still there. Façades and trees differ from their scan
+for reasons that are no change (glass reflects the sky, foliage moves, balconies cast
+shadows the scan did not have), and new objects in front of them are left to eq. 5, which
+sees them by their geometry. The **ground** is checked as well
+(``AppearanceParams.ground_classes``, which :func:`streetcd.detect.chain.fuse_appearance`
+adds to the classes) where the cloud has colours and tells its road from its ground: a bench
+or a bin added on the pavement stands little in front of it, so eq. 5, low-weighted there,
+sees almost nothing (docs/TUNING.md, thirtieth round). The road is not checked: cars come
+and go on it. :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before
+the node energy of eq. 7; ``AppearanceParams(enabled=False)`` is the paper's method.
 """
 
 from __future__ import annotations

@@ -62,7 +62,13 @@ from streetcd.detect.intensity import intensity_change, intensity_codes
 from streetcd.detect.locate import Working, region_depth_fractions, working_set
 from streetcd.detect.refine import refined_mask
 from streetcd.detect.regions import Region, changed_regions, cut_apart
-from streetcd.detect.roles import cloud_roles, in_roles, mostly_roleless, useless_classes
+from streetcd.detect.roles import (
+    cloud_roles,
+    in_roles,
+    mostly_roleless,
+    road_told,
+    useless_classes,
+)
 from streetcd.detect.seethrough import see_through_change
 from streetcd.detect.silhouette import GROUND_ROLES, near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
@@ -278,7 +284,10 @@ def detect_view(
     lap("raw_change")
     if params.appearance.enabled and kind != "colour":
         _tell_no_colours(surfaces, kind)
-    fused, appearance = fuse_appearance(image, surf, change, local, params, kind or "colour")
+    ground = kind == "colour" and road_told(cloud.classification, params.classes)
+    fused, appearance = fuse_appearance(
+        image, surf, change, local, params, kind or "colour", ground=ground
+    )
     if appearance is not None:
         lap("appearance")
     texture = None
@@ -340,12 +349,16 @@ def fuse_appearance(
     local: View,
     params: DetectParams,
     kind: str = "colour",
+    *,
+    ground: bool = False,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The change eq. 7 sees, ``max(C_p, k · A_p)``, and ``A_p`` (:mod:`streetcd.detect.appearance`)
     of the view ``image`` (H, W, 3) uint8 on its surface ``surf``; ``(change, None)`` when the
     check is off or the surface has no colours. change : (H, W) float32 raw change. kind
     "intensity" (:func:`reference_kind`): ``surf.colour`` holds intensity codes, and ``A_p``
-    is the intensity check's (:mod:`streetcd.detect.intensity`)."""
+    is the intensity check's (:mod:`streetcd.detect.intensity`). ground: the colour check
+    looks at ``appearance.ground_classes`` as well (:func:`detect_view` asks for it when the
+    cloud has colours and tells its road from its ground, :func:`~streetcd.detect.roles.road_told`)."""
     if not params.appearance.enabled or surf.colour is None:
         return change, None
     radius = registration_radius_px(local.intrinsics.width, params.correlate)
@@ -354,9 +367,10 @@ def fuse_appearance(
             image, surf.colour[..., 0], surf.valid, surf.classes, params.appearance, radius
         )
     else:
-        appearance = appearance_change(
-            image, surf.colour, surf.valid, surf.classes, params.appearance, radius
-        )
+        ap = params.appearance
+        if ground and ap.ground_classes:
+            ap = replace(ap, classes=ap.classes + ap.ground_classes)
+        appearance = appearance_change(image, surf.colour, surf.valid, surf.classes, ap, radius)
     return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
 
 

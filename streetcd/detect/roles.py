@@ -114,6 +114,19 @@ def infers(classification: np.ndarray, class_map: ClassMap) -> bool:
     return mostly_roleless(classification, class_map) is not None
 
 
+def road_told(classification: np.ndarray, class_map: ClassMap) -> bool:
+    """Whether a cloud of these classes (N,) uint8 (its own codes) tells its road from its
+    ground: at least ``MIN_USEFUL_SHARE`` of its points are road and no role is inferred
+    (:func:`~streetcd.detect.infer_roles.infer_roles` gives the road and the sidewalk one
+    role). Only then does the reference-colour check look at the ground
+    (``AppearanceParams.ground_classes``): on the road, cars come and go."""
+    if len(classification) == 0 or infers(classification, class_map):
+        return False
+    counts, total = _code_counts(classification)
+    road = int(counts[_table(class_map) == classes.ROAD].sum())
+    return road >= MIN_USEFUL_SHARE * total
+
+
 def _timed_inference(xyz: np.ndarray) -> np.ndarray:
     start = time.perf_counter()
     roles = infer_roles(xyz)
