@@ -228,3 +228,58 @@ def test_a_bench_on_the_pavement_is_seen_only_when_the_ground_is_checked():
     none = dataclasses.replace(params, appearance=AppearanceParams(ground_classes=()))
     _, empty = fuse_appearance(image, surf, zero, view, none, ground=True)
     assert empty is not None and empty.max() == 0.0
+
+
+def test_the_colour_check_of_a_12_mp_view_runs_at_the_cell_scale_and_finds_the_same_board():
+    """fuse_appearance on a view 4,000 px wide computes the check where a superpixel cell
+    is ~24 px (about half size) and upsamples it: a removed board is still found over its
+    whole inside and nothing is made up on the wall; at 1,920 px it is the full-size check
+    to the bit."""
+    from streetcd.config import DetectParams
+    from streetcd.detect.chain import fuse_appearance
+    from streetcd.detect.correlate import registration_radius_px
+    from streetcd.detect.surface import ViewSurface
+    from streetcd.types import Intrinsics, Pose, View
+
+    params = DetectParams()
+    for width, height in ((4000, 240), (1920, 240)):
+        ref = np.full((height, width, 3), (150, 150, 140), np.uint8)
+        ref[:, ::7] = (120, 110, 100)  # mortar lines
+        classes = np.full((height, width), cls.BUILDING, np.uint8)
+        board = np.s_[80:160, 1000:1200]
+        ref[board] = (200, 40, 40)
+        classes[board] = cls.SIGN
+        image = ref.copy()
+        image[board] = (150, 150, 140)  # the board is gone
+        valid = np.ones((height, width), bool)
+        surf = ViewSurface(np.full((height, width), 10.0, np.float32), classes, valid, ref)
+        intr = Intrinsics(width, height, 0.8 * width, 0.8 * width, width / 2, height / 2)
+        view = View("v", intr, Pose(np.eye(3), np.zeros(3)))
+        zero = np.zeros((height, width), np.float32)
+        _, a = fuse_appearance(image, surf, zero, view, params)
+        assert a is not None and a.shape == (height, width)
+        assert a[90:150, 1010:1190].min() > 0.5
+        assert a[:, :900].max() == 0.0 and a[:, 1300:].max() == 0.0
+        radius = registration_radius_px(width, params.correlate)
+        full = appearance_change(image, ref, valid, classes, params.appearance, radius)
+        if width == 1920:
+            np.testing.assert_array_equal(a, full)
+        else:  # within 0.05 of the full-size check over the board's inside
+            assert np.abs(a[90:150, 1010:1190] - full[90:150, 1010:1190]).max() < 0.05
+
+
+def test_shrink_averages_whole_blocks_first():
+    from streetcd.detect.chain import shrink
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (300, 400, 3), np.uint8)
+    half = shrink(image, (200, 150))  # a whole factor: the 2 × 2 block means
+    blocks = image.reshape(150, 2, 200, 2, 3).astype(np.float64).mean(axis=(1, 3))
+    assert np.abs(half.astype(np.float64) - blocks).max() <= 1.0
+    assert shrink(image, (192, 144)).shape == (144, 192, 3)
+    # less than halved: OpenCV's area resize itself
+    import cv2
+
+    np.testing.assert_array_equal(
+        shrink(image, (300, 225)), cv2.resize(image, (300, 225), interpolation=cv2.INTER_AREA)
+    )

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from streetcd.config import DetectParams, scale_px
+from streetcd.config import AppearanceParams, DetectParams, scale_px
 from streetcd.detect.align import neighbour_shifts
 from streetcd.detect.appearance import (
     appearance_change,
@@ -370,8 +370,69 @@ def fuse_appearance(
         ap = params.appearance
         if ground and ap.ground_classes:
             ap = replace(ap, classes=ap.classes + ap.ground_classes)
-        appearance = appearance_change(image, surf.colour, surf.valid, surf.classes, ap, radius)
+        appearance = _colour_check_at_cell_scale(image, surf.colour, surf, ap, params)
     return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
+
+
+def shrink(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` (H, W[, C]) shrunk to ``size`` (width, height) by area: when both sides
+    shrink by 2 or more, first by the whole factor ``k`` (k × k blocks averaged: OpenCV's
+    fast path, ~4 ms at 12 MP) and then bilinearly by the rest (a factor between 1 and 2),
+    where OpenCV's area resize at a fractional factor takes ~60 ms at 12 MP
+    (docs/BENCHMARKS.md); otherwise OpenCV's area resize itself."""
+    h, w = image.shape[:2]
+    k = min(w // size[0], h // size[1])
+    if k < 2:
+        return np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
+    blocks = cv2.resize(image, (w // k, h // k), interpolation=cv2.INTER_AREA)
+    if blocks.shape[1::-1] == size:
+        return np.asarray(blocks)
+    return np.asarray(cv2.resize(blocks, size, interpolation=cv2.INTER_LINEAR))
+
+
+def _cell_scale(width: int, params: DetectParams) -> float:
+    """The factor (≤ 1) that brings a superpixel cell of an image ``width`` px wide to about
+    ``CHANGE_CELL_PX``: 1 up to ~2 MP (1,920 px wide), ~0.48 at 12 MP."""
+    cell = scale_px(params.graphcut.superpixel_cell_px, width, minimum=2.0)
+    return min(1.0, CHANGE_CELL_PX / cell)
+
+
+def _colour_check_at_cell_scale(
+    image: np.ndarray,
+    colour: np.ndarray,
+    surf: ViewSurface,
+    ap: AppearanceParams,
+    params: DetectParams,
+) -> np.ndarray:
+    """The reference-colour check ``A_p`` (H, W) float32 of ``image`` (H, W, 3) uint8 against
+    the old cloud's ``colour`` (H, W, 3) uint8 on ``surf``, computed where a superpixel cell is about ``CHANGE_CELL_PX`` wide and upsampled
+    (bilinear), as eq. 5 is (:func:`_raw_change_at_cell_scale`): the graph cut sees it through
+    superpixel means, and at 12 MP the footprint's hole fill and the colour distances over
+    every pixel took ~0.27 s (docs/BENCHMARKS.md). Up to ~2 MP it runs at full size, the
+    same to the bit. The image and the surface's rasters are sampled at the same pixels
+    (nearest): the check compares the two pixel by pixel, and an image averaged by area
+    against reference colours sampled would differ in contrast, which the colour transfer
+    then takes for a difference of the cameras."""
+    h, w = surf.valid.shape
+    scale = _cell_scale(w, params)
+    hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
+    if (hs, ws) == (h, w):
+        radius = registration_radius_px(w, params.correlate)
+        return appearance_change(image, colour, surf.valid, surf.classes, ap, radius)
+    rows, cols = nearest_index(hs, h), nearest_index(ws, w)
+
+    def small(raster: np.ndarray) -> np.ndarray:
+        return np.take(np.take(raster, rows, axis=0), cols, axis=1)
+
+    a = appearance_change(
+        small(image),
+        small(colour),
+        small(surf.valid),
+        small(surf.classes),
+        ap,
+        registration_radius_px(ws, params.correlate),
+    )
+    return np.asarray(cv2.resize(a, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
 
 
 def _neighbour(
@@ -708,8 +769,7 @@ def _raw_change_at_cell_scale(
     so no depth is blended across an occlusion edge.
     """
     h, w = depth.shape
-    cell = scale_px(params.graphcut.superpixel_cell_px, w, minimum=2.0)
-    scale = min(1.0, CHANGE_CELL_PX / cell)
+    scale = _cell_scale(w, params)
     intr = local.intrinsics
     hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
     keep = keep_minimum and params.correlate.second_smallest
@@ -732,7 +792,7 @@ def _raw_change_at_cell_scale(
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
     used = [replace(nb, offset=(nb.offset[0] * sy, nb.offset[1] * sx)) for nb in used]
     change, support = raw_change(
-        cv2.resize(stretched, (ws, hs), interpolation=cv2.INTER_AREA),
+        shrink(stretched, (ws, hs)),
         # np.take: contiguous, without the (hs, W) intermediate of a[rows][:, cols]
         np.take(np.take(depth, rows, axis=0), cols, axis=1),
         np.take(np.take(classes, rows, axis=0), cols, axis=1),
