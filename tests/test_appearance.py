@@ -269,6 +269,8 @@ def test_the_colour_check_of_a_12_mp_view_runs_at_the_cell_scale_and_finds_the_s
 
 
 def test_shrink_averages_whole_blocks_first():
+    import cv2
+
     from streetcd.detect.chain import shrink
 
     rng = np.random.default_rng(3)
@@ -278,8 +280,6 @@ def test_shrink_averages_whole_blocks_first():
     assert np.abs(half.astype(np.float64) - blocks).max() <= 1.0
     assert shrink(image, (192, 144)).shape == (144, 192, 3)
     # less than halved: OpenCV's area resize itself
-    import cv2
-
     np.testing.assert_array_equal(
         shrink(image, (300, 225)), cv2.resize(image, (300, 225), interpolation=cv2.INTER_AREA)
     )

@@ -405,11 +405,11 @@ def _colour_check_at_cell_scale(
     params: DetectParams,
 ) -> np.ndarray:
     """The reference-colour check ``A_p`` (H, W) float32 of ``image`` (H, W, 3) uint8 against
-    the old cloud's ``colour`` (H, W, 3) uint8 on ``surf``, computed where a superpixel cell is about ``CHANGE_CELL_PX`` wide and upsampled
-    (bilinear), as eq. 5 is (:func:`_raw_change_at_cell_scale`): the graph cut sees it through
-    superpixel means, and at 12 MP the footprint's hole fill and the colour distances over
-    every pixel took ~0.27 s (docs/BENCHMARKS.md). Up to ~2 MP it runs at full size, the
-    same to the bit. The image and the surface's rasters are sampled at the same pixels
+    the old cloud's ``colour`` (H, W, 3) uint8 (``surf.colour``) on ``surf``, computed where a
+    superpixel cell is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear), as eq. 5 is
+    (:func:`_raw_change_at_cell_scale`): the graph cut sees it through superpixel means, and
+    at 12 MP the footprint's hole fill and the colour distances over every pixel took ~0.27 s
+    (docs/BENCHMARKS.md). Up to ~2 MP it runs at full size, the same to the bit. The image and the surface's rasters are sampled at the same pixels
     (nearest): the check compares the two pixel by pixel, and an image averaged by area
     against reference colours sampled would differ in contrast, which the colour transfer
     then takes for a difference of the cameras."""
