@@ -390,11 +390,19 @@ def shrink(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.asarray(cv2.resize(blocks, size, interpolation=cv2.INTER_LINEAR))
 
 
-def _cell_scale(width: int, params: DetectParams) -> float:
-    """The factor (≤ 1) that brings a superpixel cell of an image ``width`` px wide to about
-    ``CHANGE_CELL_PX``: 1 up to ~2 MP (1,920 px wide), ~0.48 at 12 MP."""
-    cell = scale_px(params.graphcut.superpixel_cell_px, width, minimum=2.0)
-    return min(1.0, CHANGE_CELL_PX / cell)
+def _cell_shape(shape: tuple[int, ...], params: DetectParams) -> tuple[int, int]:
+    """(hs, ws): an image of ``shape`` (H, W, …) scaled so that a superpixel cell is about
+    ``CHANGE_CELL_PX`` wide: (H, W) itself up to ~2 MP (1,920 px wide), ~0.48 of it at 12 MP."""
+    h, w = shape[:2]
+    cell = scale_px(params.graphcut.superpixel_cell_px, w, minimum=2.0)
+    scale = min(1.0, CHANGE_CELL_PX / cell)
+    return max(1, round(h * scale)), max(1, round(w * scale))
+
+
+def _sampled(raster: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``raster`` (H, W, …) at the nearest pixels ``rows`` × ``cols`` (np.take: contiguous,
+    without the (hs, W) intermediate of ``raster[rows][:, cols]``)."""
+    return np.take(np.take(raster, rows, axis=0), cols, axis=1)
 
 
 def _colour_check_at_cell_scale(
@@ -414,21 +422,16 @@ def _colour_check_at_cell_scale(
     against reference colours sampled would differ in contrast, which the colour transfer
     then takes for a difference of the cameras."""
     h, w = surf.valid.shape
-    scale = _cell_scale(w, params)
-    hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
+    hs, ws = _cell_shape((h, w), params)
     if (hs, ws) == (h, w):
         radius = registration_radius_px(w, params.correlate)
         return appearance_change(image, colour, surf.valid, surf.classes, ap, radius)
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
-
-    def small(raster: np.ndarray) -> np.ndarray:
-        return np.take(np.take(raster, rows, axis=0), cols, axis=1)
-
     a = appearance_change(
-        small(image),
-        small(colour),
-        small(surf.valid),
-        small(surf.classes),
+        _sampled(image, rows, cols),
+        _sampled(colour, rows, cols),
+        _sampled(surf.valid, rows, cols),
+        _sampled(surf.classes, rows, cols),
         ap,
         registration_radius_px(ws, params.correlate),
     )
@@ -769,9 +772,8 @@ def _raw_change_at_cell_scale(
     so no depth is blended across an occlusion edge.
     """
     h, w = depth.shape
-    scale = _cell_scale(w, params)
+    hs, ws = _cell_shape((h, w), params)
     intr = local.intrinsics
-    hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
     keep = keep_minimum and params.correlate.second_smallest
     minimum = np.empty((hs, ws), np.float32) if keep else None
     if (hs, ws) == (h, w):
@@ -793,9 +795,8 @@ def _raw_change_at_cell_scale(
     used = [replace(nb, offset=(nb.offset[0] * sy, nb.offset[1] * sx)) for nb in used]
     change, support = raw_change(
         shrink(stretched, (ws, hs)),
-        # np.take: contiguous, without the (hs, W) intermediate of a[rows][:, cols]
-        np.take(np.take(depth, rows, axis=0), cols, axis=1),
-        np.take(np.take(classes, rows, axis=0), cols, axis=1),
+        _sampled(depth, rows, cols),
+        _sampled(classes, rows, cols),
         small,
         local.pose,
         used,
