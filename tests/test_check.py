@@ -276,3 +276,9 @@ def test_the_class_codes_are_judged_by_the_configs_class_map(city_coded):
     assert warning.startswith("only 0.00 % of the reference points have a class the detector uses")
     assert "210:" in warning and "set detect.classes" in warning
     assert "code 210" in plain.notes[0]
+    # and the reference-colour check will leave the ground out: no road told from it
+    assert plain.notes[1] == (
+        "the reference-colour check leaves the ground out (appearance.ground_classes): the "
+        "points' roles are inferred from their geometry, which gives the road and the sidewalk"
+        " one role"
+    )

@@ -20,6 +20,7 @@ from streetcd.detect.roles import (
     in_roles,
     infers,
     road_told,
+    road_told_codes,
     role_codes,
 )
 from streetcd.errors import InputError
@@ -310,4 +311,11 @@ def test_the_road_is_told_from_the_ground_only_by_the_clouds_own_classes(scene):
     few = want.copy()
     few[ground[: int(0.005 * len(want))]] = classes.ROAD  # 0.5 % road: under the 1 % share
     assert not road_told(few, auto)
+    why = road_told_codes(np.bincount(few, minlength=256), auto)
+    assert (
+        why is not None
+        and why.startswith("only 0.")
+        and why.endswith(" % of the points are road (detect.classes road)")
+    )
+    assert road_told_codes(np.bincount(with_road, minlength=256), auto) is None
     assert not road_told(np.empty(0, np.uint8), auto)

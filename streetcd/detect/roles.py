@@ -107,11 +107,16 @@ def _roles(xyz: np.ndarray, classification: np.ndarray, class_map: ClassMap) -> 
 
 def infers(classification: np.ndarray, class_map: ClassMap) -> bool:
     """Whether :func:`cloud_roles` infers the roles of a cloud of these classes (N,) uint8."""
-    if class_map.infer == "off" or len(classification) == 0:
+    return infers_codes(_code_counts(classification)[0], class_map)
+
+
+def infers_codes(counts: np.ndarray, class_map: ClassMap) -> bool:
+    """:func:`infers` of points counted by code, ``counts`` (256,)."""
+    if class_map.infer == "off" or int(np.sum(counts)) == 0:
         return False
-    if class_map.infer == "always" or useless_classes(classification, class_map) is not None:
+    if class_map.infer == "always" or useless_codes(counts, class_map) is not None:
         return True
-    return mostly_roleless(classification, class_map) is not None
+    return roleless_codes(counts, class_map) is not None
 
 
 def road_told(classification: np.ndarray, class_map: ClassMap) -> bool:
@@ -120,11 +125,25 @@ def road_told(classification: np.ndarray, class_map: ClassMap) -> bool:
     (:func:`~streetcd.detect.infer_roles.infer_roles` gives the road and the sidewalk one
     role). Only then does the reference-colour check look at the ground
     (``AppearanceParams.ground_classes``): on the road, cars come and go."""
-    if len(classification) == 0 or infers(classification, class_map):
-        return False
-    counts, total = _code_counts(classification)
+    return road_told_codes(_code_counts(classification)[0], class_map) is None
+
+
+def road_told_codes(counts: np.ndarray, class_map: ClassMap) -> str | None:
+    """Why a cloud whose points are counted by code, ``counts`` (256,), does not tell its road
+    from its ground (:func:`road_told`), or None when it does."""
+    counts = np.asarray(counts)
+    total = int(counts.sum())
+    if total == 0:
+        return "the cloud has no points"
+    if infers_codes(counts, class_map):
+        return (
+            "the points' roles are inferred from their geometry, which gives the road and the"
+            " sidewalk one role"
+        )
     road = int(counts[_table(class_map) == classes.ROAD].sum())
-    return road >= MIN_USEFUL_SHARE * total
+    if road < MIN_USEFUL_SHARE * total:
+        return f"only {100 * road / total:.2f} % of the points are road (detect.classes road)"
+    return None
 
 
 def _timed_inference(xyz: np.ndarray) -> np.ndarray:

@@ -27,12 +27,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from streetcd.config import Config
+from streetcd.config import Config, DetectParams
 from streetcd.errors import CRSMismatchError, InputError, MissingInputError, StreetcdError
 from streetcd.store.locks import lock_path, run_lock
 
 if TYPE_CHECKING:
-    from streetcd.config import ClassMap
     from streetcd.run.plan import NightListing
     from streetcd.store.tiles import TileStore
     from streetcd.types import View
@@ -136,7 +135,7 @@ def check_inputs(
         warnings.append(f"{len(failing)} view(s) will fail: {_some(failing)}; e.g. {first_error}")
     if tiles is not None:
         views = [near[n] for n in sorted(near)]
-        notes += _class_codes(tiles, views, reach_m, warnings, config.detect.classes)
+        notes += _class_codes(tiles, views, reach_m, warnings, config.detect)
     return CheckReport(
         frozenset(files) | frozenset(refused),
         frozenset(posed) | {name for name, _ in bad_rows},
@@ -278,16 +277,21 @@ def _class_codes(
     views: Sequence[View],
     reach_m: float,
     warnings: list[str],
-    class_map: ClassMap,
+    params: DetectParams,
 ) -> list[str]:
     """A note of the class codes of the store's points near ``views`` (share of points,
-    each with the role ``class_map`` gives it); a warning when too few are in a role the
-    detector uses, a note when most are in no role (the detector's own checks,
-    :func:`streetcd.detect.roles.useless_codes` and :func:`~streetcd.detect.roles.roleless_codes`:
-    said here once for the night, not by every worker)."""
+    each with the role ``params.classes`` gives it); a warning when too few are in a role the
+    detector uses, a note when most are in no role, and one when the reference-colour check
+    will leave the ground out because the codes do not tell the road from it (the
+    detector's own checks, :func:`streetcd.detect.roles.useless_codes`,
+    :func:`~streetcd.detect.roles.roleless_codes` and
+    :func:`~streetcd.detect.roles.road_told_codes`: said here once for the night, not by
+    every worker)."""
     import numpy as np
 
-    from streetcd.detect.roles import role_of_code, roleless_codes, useless_codes
+    from streetcd.detect.roles import road_told_codes, role_of_code, roleless_codes, useless_codes
+
+    class_map = params.classes
 
     counts: Counter[int] = Counter()
     seen: set[str] = set()
@@ -309,6 +313,13 @@ def _class_codes(
         roleless = roleless_codes(by_code, class_map)
         if roleless is not None:
             notes.append(roleless)
+    ap = params.appearance
+    untold = road_told_codes(by_code, class_map) if ap.enabled and ap.ground_classes else None
+    if untold is not None:
+        notes.append(
+            "the reference-colour check leaves the ground out (appearance.ground_classes): "
+            f"{untold}"
+        )
     shares = ", ".join(
         f"{role_of_code(c, class_map) or 'code'} {c} {100 * n / total:.0f} %"
         for c, n in counts.most_common()
