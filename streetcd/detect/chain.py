@@ -370,7 +370,9 @@ def fuse_appearance(
         ap = params.appearance
         if ground and ap.ground_classes:
             ap = replace(ap, classes=ap.classes + ap.ground_classes)
-        appearance = _colour_check_at_cell_scale(image, surf.colour, surf, ap, params)
+        appearance = _colour_check_at_cell_scale(
+            image, surf.colour, surf.valid, surf.classes, ap, params
+        )
     return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
 
 
@@ -408,30 +410,32 @@ def _sampled(raster: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarr
 def _colour_check_at_cell_scale(
     image: np.ndarray,
     colour: np.ndarray,
-    surf: ViewSurface,
+    valid: np.ndarray,
+    classes: np.ndarray,
     ap: AppearanceParams,
     params: DetectParams,
 ) -> np.ndarray:
     """The reference-colour check ``A_p`` (H, W) float32 of ``image`` (H, W, 3) uint8 against
-    the old cloud's ``colour`` (H, W, 3) uint8 (``surf.colour``) on ``surf``, computed where a
-    superpixel cell is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear), as eq. 5 is
-    (:func:`_raw_change_at_cell_scale`): the graph cut sees it through superpixel means, and
-    at 12 MP the footprint's hole fill and the colour distances over every pixel took ~0.27 s
-    (docs/BENCHMARKS.md). Up to ~2 MP it runs at full size, the same to the bit. The image and the surface's rasters are sampled at the same pixels
-    (nearest): the check compares the two pixel by pixel, and an image averaged by area
-    against reference colours sampled would differ in contrast, which the colour transfer
-    then takes for a difference of the cameras."""
-    h, w = surf.valid.shape
+    the old cloud's ``colour`` (H, W, 3) uint8 on the surface ``valid`` (H, W) bool with its
+    ``classes`` (H, W) uint8, computed where a superpixel cell is about ``CHANGE_CELL_PX``
+    wide and upsampled (bilinear), as eq. 5 is (:func:`_raw_change_at_cell_scale`): the graph
+    cut sees it through superpixel means, and at 12 MP the footprint's hole fill and the
+    colour distances over every pixel took ~0.27 s (docs/BENCHMARKS.md). Up to ~2 MP it runs
+    at full size, the same to the bit. The image and the surface's rasters are sampled at the
+    same pixels (nearest): the check compares the two pixel by pixel, and an image averaged
+    by area against reference colours sampled would differ in contrast, which the colour
+    transfer then takes for a difference of the cameras."""
+    h, w = valid.shape
     hs, ws = _cell_shape((h, w), params)
     if (hs, ws) == (h, w):
         radius = registration_radius_px(w, params.correlate)
-        return appearance_change(image, colour, surf.valid, surf.classes, ap, radius)
+        return appearance_change(image, colour, valid, classes, ap, radius)
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
     a = appearance_change(
         _sampled(image, rows, cols),
         _sampled(colour, rows, cols),
-        _sampled(surf.valid, rows, cols),
-        _sampled(surf.classes, rows, cols),
+        _sampled(valid, rows, cols),
+        _sampled(classes, rows, cols),
         ap,
         registration_radius_px(ws, params.correlate),
     )
