@@ -9,8 +9,8 @@ tour's street; ``--kind``: a street kind of
 cached under ``out/bench-scenes``; one middle view with 3 neighbours is detected ``--repeat`` times after a
 warm-up (numba compilation, caches), and the median of every step is printed:
 
-* project + z-buffer (eq. 1–3) and surface (triangulation, rasters) for the view and its
-  3 neighbours, as :func:`streetcd.detect.chain.detect_view` does them;
+* project + z-buffer (eq. 1–3) and surface (triangulation, rasters, the near points' fill)
+  for the view and its 3 neighbours, as :func:`streetcd.detect.chain.detect_view` does them;
 * correlate: histogram stretching of the view, the neighbours' colour envelopes, their
   registration shifts (:mod:`streetcd.detect.align`) and the raw change (eq. 4–5), with the
   pairwise levels and the near-depth hypothesis (:mod:`streetcd.detect.silhouette`);
@@ -145,10 +145,12 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     from streetcd.detect.graphcut import cut_changes, node_energy, superpixels
     from streetcd.detect.refine import refined_mask
     from streetcd.detect.regions import changed_regions, cut_apart
-    from streetcd.detect.roles import road_told
+    from streetcd.detect.roles import infers, road_told
     from streetcd.detect.surface import (
         _point_spacing,
         _zbuffer_params_for,
+        fill_from_points,
+        reach_px,
         rgb8,
         view_surface,
         zbuffer_keep,
@@ -173,6 +175,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
         keep = zbuffer_keep(pts, img, zparams, focal, spacing)
         kept = pts.take(keep)
         t1 = time.perf_counter()
+        kept_colours = None if colours is None else colours[kept.index]
+        kept_spacing = None if spacing is None else spacing[keep]
         surf = view_surface(
             kept.uv,
             kept.depth,
@@ -180,9 +184,14 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
             img.shape[:2],
             params.surface,
             cell_px=zparams.block_window_px,
-            colours=None if colours is None else colours[kept.index],
-            spacing=None if spacing is None else (spacing[keep], focal),
+            colours=kept_colours,
+            spacing=None if kept_spacing is None else (kept_spacing, focal),
         )
+        if params.surface.point_fill_classes and not infers(  # as view_surface_of
+            cloud.classification, params.classes
+        ):
+            reach = reach_px(kept.depth, zparams, focal, kept_spacing)
+            surf = fill_from_points(surf, kept, reach, params.surface, kept_colours)
         t2 = time.perf_counter()
         t["project_zbuffer"] += t1 - t0
         t["surface"] += t2 - t1

@@ -12,4 +12,12 @@ mkdir -p "$NUMBA_CACHE_DIR"
 # A temporary Prefect home: nothing of the demo's own Prefect server stays in the image.
 PREFECT_HOME="$work/prefect" PREFECT_SERVER_ANALYTICS_ENABLED=false \
     streetcd demo --out "$work/demo" --streets 1 --images-per-street 3 --size 320x180 --workers 1
+# The demo's tiny city has no pole near enough to a camera for the near points' fill
+# (streetcd.detect.surface.fill_from_points): compile its kernel with the types a view passes.
+python -c '
+import numpy as np
+from streetcd.detect.surface import _draw_discs
+_draw_discs(np.zeros((1, 2)), np.ones(1), np.ones(1), np.full((2, 2), np.inf, np.float32),
+            np.zeros((2, 2), np.float32), np.full((2, 2), -1, np.int32))
+'
 echo "numba cache: $(find "$NUMBA_CACHE_DIR" -name '*.nbc' | wc -l) compiled kernels in $NUMBA_CACHE_DIR"

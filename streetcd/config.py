@@ -137,10 +137,28 @@ class SurfaceParams:
     # the step from an object to the ground or the wall behind it (docs/TUNING.md,
     # seventeenth round); False = any roles
     spacing_edge_same_role: bool = True
+    # our addition (issue 16): the near points of these roles fill their object's surface
+    # between them. A pole 1-3 m from the camera, scanned in profiles 40-70 px apart there,
+    # gets no triangle under max_edge_px and the wall behind it showed through its outline.
+    # Each point stands for a disc of point_fill_reach x its z-buffer reach f·s/z
+    # (streetcd.detect.zbuffer), and a pixel is filled only where it lies point_fill_core x
+    # its disc's radius inside their union (a closing: nothing spills past the outer points).
+    # Railings are left out: their gaps show what is behind. Points whose disc's radius is
+    # under point_fill_min_px are left to the triangles, and a cloud whose roles are inferred
+    # from its geometry is not filled: an inferred pole may be anything upright
+    # (docs/TUNING.md, thirty-first round); () = off (the paper)
+    point_fill_classes: tuple[int, ...] = (classes.POLE, classes.SIGN, classes.FURNITURE)
+    point_fill_reach: float = 0.6
+    point_fill_core: float = 0.9
+    point_fill_min_px: float = 3.0
 
     def __post_init__(self) -> None:
         _check(self.max_depth_jump_m > 0, "max_depth_jump_m", self.max_depth_jump_m, "> 0")
         _check(self.max_edge_px > 0, "max_edge_px", self.max_edge_px, "> 0")
+        _codes(self, "point_fill_classes", "point_fill_classes")
+        _check(self.point_fill_reach > 0, "point_fill_reach", self.point_fill_reach, "> 0")
+        _check(0 < self.point_fill_core <= 1, "point_fill_core", self.point_fill_core, "in (0, 1]")
+        _check(self.point_fill_min_px >= 0, "point_fill_min_px", self.point_fill_min_px, ">= 0")
         for name in (
             "spacing_edge_factor",
             "spacing_jump_factor",
@@ -789,6 +807,9 @@ class Config:
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
             for key in [k for k in detect["appearance"] if k.startswith("intensity")]:
                 del detect["appearance"][key]
+        if not self.detect.surface.point_fill_classes:  # no points' fill: older hashes hold
+            for key in [k for k in detect["surface"] if k.startswith("point_fill")]:
+                del detect["surface"][key]
         blob = {
             "detect": detect,
             "segments": {

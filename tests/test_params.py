@@ -138,7 +138,9 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
 def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
-    # so it must come from a change of the results (2026-11-30, the thirtieth round: the
+    # so it must come from a change of the results (2026-11-30, the thirty-first round: the
+    # near points of poles, signs and furniture fill their surface between them;
+    # d4fdd1d909361d52 before, from the thirtieth round: the
     # ground's reference colours checked where the cloud tells its road from it;
     # 50c1033411893261 before, from 2026-11-29, the twenty-eighth round: each region's depth
     # fraction (detect.locate), which the change objects read;
@@ -160,46 +162,59 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # railing's foot; b391d095e4e6e3b2 before that, from the sixteenth round: the rules of the
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "d4fdd1d909361d52"
+    assert base.results_hash() == "1d6f3ec9e30c7274"
+    # the near points' fill off (the thirty-first round's surface.point_fill_classes): the
+    # thirtieth round's hash holds
+    unfilled = SurfaceParams(point_fill_classes=())
+    assert Config(DetectParams(surface=unfilled)).results_hash() == "d4fdd1d909361d52"
+    # every older hash below was made before the points' fill existed: built without it
+
+    def unfilled_detect(**kw):
+        return DetectParams(**{"surface": unfilled, **kw})
+
     # the ground's colours not checked (the thirtieth round's appearance.ground_classes off):
     # the twenty-eighth round's hash holds, and with it every earlier one below
     inventory = AppearanceParams(ground_classes=())
-    assert Config(DetectParams(appearance=inventory)).results_hash() == "50c1033411893261"
+    assert Config(unfilled_detect(appearance=inventory)).results_hash() == "50c1033411893261"
     # the regions not located: the twenty-sixth round's hash holds
     unlocated = LocateParams(enabled=False)
     assert (
-        Config(DetectParams(appearance=inventory, locate=unlocated)).results_hash()
+        Config(unfilled_detect(appearance=inventory, locate=unlocated)).results_hash()
         == "41d92911d6fdb382"
     )
     # the old vehicles' changed pixels not cut apart: the twenty-fifth round's hash holds,
     # and with it every earlier one below (a region's depth is not in them: off below)
     whole = RefineParams(apart_classes=())
     assert (
-        Config(DetectParams(appearance=inventory, refine=whole, locate=unlocated)).results_hash()
+        Config(unfilled_detect(appearance=inventory, refine=whole, locate=unlocated)).results_hash()
         == "5f58a3c42a72f9a6"
     )
     # the twenty-fifth round's registration shifts off: the twenty-fourth round's hash holds
     unaligned = CorrelateParams(align_shift_px=0.0)
     assert (
         Config(
-            DetectParams(appearance=inventory, refine=whole, locate=unlocated, correlate=unaligned)
+            unfilled_detect(
+                appearance=inventory, refine=whole, locate=unlocated, correlate=unaligned
+            )
         ).results_hash()
         == "27e71fcf2b40181e"
     )
     reach_only = CorrelateParams(silhouette_edge_threshold=0.0, align_shift_px=0.0)
     assert (
         Config(
-            DetectParams(appearance=inventory, refine=whole, locate=unlocated, correlate=reach_only)
+            unfilled_detect(
+                appearance=inventory, refine=whole, locate=unlocated, correlate=reach_only
+            )
         ).results_hash()
         == "029b331307b07b3f"
     )
     no_band = CorrelateParams(silhouette_margin_m=0.0)  # then the outline changes nothing
     assert (
         Config(
-            DetectParams(appearance=inventory, refine=whole, locate=unlocated, correlate=no_band)
+            unfilled_detect(appearance=inventory, refine=whole, locate=unlocated, correlate=no_band)
         ).results_hash()
         == Config(
-            DetectParams(
+            unfilled_detect(
                 appearance=inventory,
                 refine=whole,
                 locate=unlocated,
@@ -213,7 +228,7 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     )
     assert (
         Config(
-            DetectParams(appearance=inventory, refine=whole, locate=unlocated, correlate=ungated)
+            unfilled_detect(appearance=inventory, refine=whole, locate=unlocated, correlate=ungated)
         ).results_hash()
         == "1be77a783281f300"
     )
@@ -223,12 +238,12 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     )
     assert (
         Config(
-            DetectParams(appearance=inventory, refine=whole, locate=unlocated, correlate=minimum)
+            unfilled_detect(appearance=inventory, refine=whole, locate=unlocated, correlate=minimum)
         ).results_hash()
         == "0068d660689c1b69"
     )
     see_through_off = TextureParams(see_through_classes=())
-    nineteenth_off = DetectParams(
+    nineteenth_off = unfilled_detect(
         appearance=inventory,
         refine=whole,
         locate=unlocated,
@@ -244,17 +259,17 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         align_shift_px=0.0,
     )
     nearer_on = Config(
-        DetectParams(appearance=inventory, refine=whole, locate=unlocated, correlate=nearer)
+        unfilled_detect(appearance=inventory, refine=whole, locate=unlocated, correlate=nearer)
     )
     assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
     blurred = Config(
-        DetectParams(
+        unfilled_detect(
             appearance=inventory, refine=whole, locate=unlocated, texture=TextureParams(blur_px=1.5)
         )
     )
     assert blurred.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     floored = Config(
-        DetectParams(
+        unfilled_detect(
             appearance=inventory,
             refine=whole,
             locate=unlocated,
@@ -263,19 +278,22 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     )
     assert floored.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     log_transfer = Config(
-        DetectParams(appearance=AppearanceParams(transfer="log", ground_classes=()))
+        unfilled_detect(appearance=AppearanceParams(transfer="log", ground_classes=()))
     )
     assert log_transfer.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     reach_colour = Config(
-        DetectParams(appearance=inventory, zbuffer=ZBufferParams(reach_colour=True))
+        unfilled_detect(appearance=inventory, zbuffer=ZBufferParams(reach_colour=True))
     )
     assert reach_colour.results_hash() not in (base.results_hash(), nearer_on.results_hash())
     # the surface and z-buffer of the sixteenth round's defaults (with today's rules of the
     # inferred roles, whose version is in the hash)
     dense_surface = SurfaceParams(
-        spacing_edge_factor=0.0, spacing_edge_min_spacing_m=0.0, spacing_edge_same_role=False
+        point_fill_classes=(),
+        spacing_edge_factor=0.0,
+        spacing_edge_min_spacing_m=0.0,
+        spacing_edge_same_role=False,
     )
-    sixteenth = DetectParams(
+    sixteenth = unfilled_detect(
         appearance=inventory,
         refine=whole,
         locate=unlocated,
@@ -293,18 +311,20 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         texture=TextureParams(min_foreshortening=0.0, see_through_classes=()),
     )
     assert Config(before).results_hash() == "5d2d95da524a50c4"
-    texture_off = Config(DetectParams(appearance=inventory, texture=TextureParams(enabled=False)))
+    texture_off = Config(
+        unfilled_detect(appearance=inventory, texture=TextureParams(enabled=False))
+    )
     assert texture_off.results_hash() != base.results_hash()
-    city_codes = Config(DetectParams(appearance=inventory, classes=ClassMap(pole=(15,))))
+    city_codes = Config(unfilled_detect(appearance=inventory, classes=ClassMap(pole=(15,))))
     assert city_codes.results_hash() != base.results_hash()
     # speed only: the same results
     assert base.replace_run(batch_size=9, workers=5).results_hash() == base.results_hash()
     changed = [
-        Config(DetectParams(appearance=inventory, correlate=CorrelateParams(n_neighbours=2))),
+        Config(unfilled_detect(appearance=inventory, correlate=CorrelateParams(n_neighbours=2))),
         base.replace_run(min_region_fraction=0.01),
         base.replace_run(write_overlays=False),
         base.replace_run(segments=SegmentParams(max_gap_m=10.0)),
-        Config(DetectParams(appearance=inventory, graphcut=GraphCutParams(beta=2.0))),
+        Config(unfilled_detect(appearance=inventory, graphcut=GraphCutParams(beta=2.0))),
     ]
     hashes = {c.results_hash() for c in changed}
     assert len(hashes) == len(changed) and base.results_hash() not in hashes

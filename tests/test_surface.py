@@ -245,3 +245,82 @@ def test_edge_floor_keeps_a_small_image_surface_whole_with_the_paper_defaults():
         wall, np.full(len(wall), cls.BUILDING, np.uint8), image, INTR, pose, DetectParams()
     )
     assert surf.valid[INTERIOR].mean() > 0.99
+
+
+def _wall_surface(h: int = 200, w: int = 200):
+    """A wall 15 m away over the whole view, grey, class building."""
+    from streetcd.detect.surface import ViewSurface
+
+    return ViewSurface(
+        np.full((h, w), 15.0, np.float32),
+        np.full((h, w), cls.BUILDING, np.uint8),
+        np.ones((h, w), bool),
+        np.full((h, w, 3), 128, np.uint8),
+    )
+
+
+def _profiles(columns, code, depth=2.0, rows=range(40, 161, 8)):
+    """ProjectedPoints in vertical scan profiles at ``columns``, every 8 px down each."""
+    from streetcd.detect.zbuffer import ProjectedPoints
+
+    uv = np.array([(c, r) for c in columns for r in rows], np.float64)
+    n = len(uv)
+    return ProjectedPoints(
+        uv, np.full(n, depth), np.full(n, code, np.uint8), np.arange(n, dtype=np.int64)
+    )
+
+
+def test_a_near_poles_points_fill_its_surface_between_its_profiles_and_not_past_them():
+    """Three profiles 20 px apart, each point a 24 px disc (0.6 of a 40 px reach): the
+    gaps between them take the pole's depth, class and colour; the union's edge, 24 px past
+    the outer profiles, does not (only what lies 0.9 of a radius inside it); a nearer
+    surface, a railing's points and points whose disc is too small fill nothing."""
+    from streetcd.detect.surface import fill_from_points
+
+    params = SurfaceParams()
+    assert params.point_fill_classes == (cls.POLE, cls.SIGN, cls.FURNITURE)
+    surf = _wall_surface()
+    surf.depth[100, 90] = np.nan  # a hole between the profiles
+    surf.depth[60, 100] = 1.0  # something nearer than the pole stays
+    pole = _profiles((80, 100, 120), cls.POLE)
+    red = np.tile(np.array([[200, 30, 30]], np.uint8), (len(pole), 1))
+    out = fill_from_points(surf, pole, np.full(len(pole), 40.0), params, red)
+    assert out is surf  # in place
+    for col in (80, 85, 90, 100, 110, 120):
+        assert surf.classes[100, col] == cls.POLE and surf.depth[100, col] == 2.0, col
+        assert tuple(surf.colour[100, col]) == (200, 30, 30)
+    assert surf.valid[100, 90]
+    assert surf.depth[60, 100] == 1.0 and surf.classes[60, 100] == cls.BUILDING
+    # 24 px past the outer profiles the discs' union ends; 0.9 · 24 px inside it, at 78
+    assert (surf.classes[100, :78] == cls.BUILDING).all() and surf.classes[100, 79] == cls.POLE
+    assert (surf.classes[100, 123:] == cls.BUILDING).all() and surf.classes[100, 121] == cls.POLE
+    # a railing's gaps show what is behind it; points with a disc under the floor are left
+    for points, reach in ((_profiles((80, 100, 120), cls.RAILING), 40.0), (pole, 3.0)):
+        wall = _wall_surface()
+        fill_from_points(wall, points, np.full(len(points), reach), params)
+        assert (wall.classes == cls.BUILDING).all() and (wall.depth == 15.0).all()
+    # switched off
+    wall = _wall_surface()
+    fill_from_points(wall, pole, np.full(len(pole), 40.0), SurfaceParams(point_fill_classes=()))
+    assert (wall.classes == cls.BUILDING).all()
+
+
+def test_a_lone_near_point_fills_no_more_than_its_core():
+    """A single point's disc keeps only the pixels 0.9 of its radius inside it: a stray
+    point does not paint a 24 px disc over the wall."""
+    from streetcd.detect.surface import fill_from_points
+
+    wall = _wall_surface()
+    lone = _profiles((100,), cls.SIGN, rows=(100,))
+    fill_from_points(wall, lone, np.array([40.0]), SurfaceParams())
+    filled = wall.classes == cls.SIGN
+    assert 0 < filled.sum() <= 40 and filled[100, 100]
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("point_fill_reach", 0.0), ("point_fill_core", 1.5), ("point_fill_min_px", -1.0)],
+)
+def test_point_fill_settings_are_checked(field, value):
+    with pytest.raises(InputError, match=field):
+        SurfaceParams(**{field: value})

@@ -65,6 +65,7 @@ from streetcd.detect.regions import Region, changed_regions, cut_apart
 from streetcd.detect.roles import (
     cloud_roles,
     in_roles,
+    infers,
     mostly_roleless,
     road_told,
     useless_classes,
@@ -151,14 +152,18 @@ def view_surface_of(
     """The surface of the view ``local`` (local frame) from ``cache`` or built (and cached);
     EmptyViewError as :func:`streetcd.detect.surface.surface_for_view`. ``colours`` gives
     the cloud's 8-bit colours (:func:`cloud_colours`), converted once for all the surfaces of
-    a call."""
+    a call. The near points' fill (:func:`streetcd.detect.surface.fill_from_points`) needs
+    the cloud's own classes: where its roles are inferred from the geometry, a lawn sign's
+    sparse points taken for a pole filled into a false region of the real case's twin
+    (docs/TUNING.md, thirty-first round)."""
     if colours is None:
         colours = cloud_colours(cloud, params, cache)
 
     def build() -> ViewSurface:
         roles = cloud_roles(cloud.xyz, cloud.classification, params.classes)
+        fill = not infers(cloud.classification, params.classes)
         return surface_for_view(
-            cloud.xyz, roles, image, local.intrinsics, local.pose, params, colours()
+            cloud.xyz, roles, image, local.intrinsics, local.pose, params, colours(), fill=fill
         )[0]
 
     if cache is None:

@@ -28,6 +28,12 @@ plane seen by a pinhole camera, the disparity the paper interpolates), so planes
 exact. The class of a pixel is the class of the nearest vertex of the triangle covering it (the
 nearest kept point in all but degenerate cases); pixels outside every kept triangle have no
 surface: depth NaN, class 0, valid False. Overlapping triangles resolve to the nearest surface.
+
+Near objects' points (not in the paper; issue 16). A pole 1-3 m from the camera is scanned in
+profiles tens of pixels apart, wider than any triangle the filters keep; the surface in its
+outline was then the wall behind it. :func:`fill_from_points` closes the near points of poles,
+signs and furniture into their own surface after the triangles
+(``SurfaceParams.point_fill_classes``; docs/DECISIONS.md).
 """
 
 from __future__ import annotations
@@ -567,6 +573,8 @@ def surface_for_view(
     pose: Pose,
     params: DetectParams,
     rgb: np.ndarray | None = None,
+    *,
+    fill: bool = True,
 ) -> tuple[ViewSurface, ProjectedPoints]:
     """Project a cloud into a view, z-buffer it (eq. 1–3, metric variant, see
     :mod:`streetcd.detect.zbuffer`) and build the view's surface.
@@ -579,6 +587,8 @@ def surface_for_view(
         surface carries the reference colour raster (:mod:`streetcd.detect.appearance`).
     params : uses ``max_range_m``, ``zbuffer`` (its windows scaled to the image width when
         ``zbuffer.scale_with_resolution``) and ``surface``.
+    fill : close the near points of ``surface.point_fill_classes`` into their surface
+        (:func:`fill_from_points`); the caller turns it off where the roles are inferred.
 
     Returns
     -------
@@ -603,6 +613,8 @@ def surface_for_view(
     spacing = _point_spacing(xyz_local, cloud_classes, points, params)
     keep = zbuffer_keep(points, image, zparams, focal_px, spacing)
     kept = points.take(keep)
+    colours = None if rgb is None else rgb8(np.asarray(rgb)[kept.index])
+    kept_spacing = None if spacing is None else spacing[keep]
     surface = view_surface(
         kept.uv,
         kept.depth,
@@ -610,10 +622,107 @@ def surface_for_view(
         image.shape[:2],
         params.surface,
         cell_px=zparams.block_window_px,
-        colours=None if rgb is None else rgb8(np.asarray(rgb)[kept.index]),
-        spacing=None if spacing is None else (spacing[keep], focal_px),
+        colours=colours,
+        spacing=None if kept_spacing is None else (kept_spacing, focal_px),
     )
+    if fill and params.surface.point_fill_classes:
+        reach = reach_px(kept.depth, zparams, focal_px, kept_spacing)
+        surface = fill_from_points(surface, kept, reach, params.surface, colours)
     return surface, kept
+
+
+def reach_px(
+    depth: np.ndarray, zparams: ZBufferParams, focal_px: float, spacing: np.ndarray | None
+) -> np.ndarray:
+    """(N,) float64 px: each point's reach in the weighted z-buffer's adaptive window,
+    ``f · s / z`` with ``s = max(point_spacing_m, spacing_factor · spacing)`` (the cloud's
+    measured spacing of its class, (N,) metres, or None: ``point_spacing_m`` alone), for
+    points at camera depth ``depth`` (N,) metres (:mod:`streetcd.detect.zbuffer`)."""
+    s = np.full(depth.shape, float(zparams.point_spacing_m))
+    if spacing is not None:
+        s = np.maximum(s, zparams.spacing_factor * np.asarray(spacing, np.float64))
+    return focal_px * s / np.asarray(depth, np.float64)
+
+
+POINT_FILL_MAX_WIDTH = 0.1
+"""The largest disc :func:`fill_from_points` draws, as a share of the image width: a bound on
+its cost for points nearly at the camera (a disc keeps only its core when alone)."""
+
+
+def fill_from_points(
+    surface: ViewSurface,
+    points: ProjectedPoints,
+    reach: np.ndarray,
+    params: SurfaceParams,
+    colours: np.ndarray | None = None,
+) -> ViewSurface:
+    """``surface`` with the gaps between the near points of ``params.point_fill_classes``
+    filled by those points (our addition, issue 16; :class:`streetcd.config.SurfaceParams`).
+
+    points : the points the surface was built from (z-buffered), with ``reach`` (N,) px each
+    (:func:`reach_px`) and ``colours`` (N, 3) uint8 or None. Each point of those roles whose
+    disc, ``point_fill_reach`` × its reach px in radius, is at least ``point_fill_min_px``
+    stands for that disc; where discs overlap the nearest point's wins. A pixel is filled
+    when it lies at least ``point_fill_core`` × its disc's radius inside the discs' union
+    (a closing of the points: the gaps between a pole's scan profiles fill, and the union's
+    edge, which runs a disc's radius past the outer points, does not), and the surface there
+    is a hole or lies more than ``max_depth_jump_m`` behind the point. Filled pixels take
+    the point's depth, class and colour. The rasters are updated in place; returned for
+    chaining."""
+    h, w = surface.depth.shape
+    table = np.zeros(256, bool)
+    table[np.asarray(params.point_fill_classes, np.int64)] = True
+    radius = params.point_fill_reach * np.asarray(reach, np.float64)
+    sel = np.flatnonzero(table[points.classes] & (radius >= params.point_fill_min_px))
+    if sel.size == 0:
+        return surface
+    radius = np.minimum(radius[sel], POINT_FILL_MAX_WIDTH * w)
+    uv = points.uv[sel]
+    # the discs' box, one pixel wider: the union's edge has unfilled pixels on both sides
+    c0 = max(0, int(np.floor((uv[:, 0] - radius).min())) - 1)
+    c1 = min(w, int(np.ceil((uv[:, 0] + radius).max())) + 2)
+    r0 = max(0, int(np.floor((uv[:, 1] - radius).min())) - 1)
+    r1 = min(h, int(np.ceil((uv[:, 1] + radius).max())) + 2)
+    if c0 >= c1 or r0 >= r1:
+        return surface
+    near = np.full((r1 - r0, c1 - c0), np.inf, np.float32)
+    disc = np.zeros(near.shape, np.float32)
+    owner = np.full(near.shape, -1, np.int32)
+    _draw_discs(uv - (c0, r0), points.depth[sel], radius, near, disc, owner)
+    claimed = owner >= 0
+    inside = cv2.distanceTransform(claimed.astype(np.uint8), cv2.DIST_L2, 5)
+    box = np.s_[r0:r1, c0:c1]
+    z = surface.depth[box]
+    fill = claimed & (inside >= params.point_fill_core * disc)
+    fill &= ~(z <= near + params.max_depth_jump_m)  # a hole (NaN) or farther behind
+    if not fill.any():
+        return surface
+    idx = sel[owner[fill]]
+    z[fill] = points.depth[idx]
+    surface.classes[box][fill] = points.classes[idx]
+    surface.valid[box][fill] = True
+    if surface.colour is not None and colours is not None:
+        surface.colour[box][fill] = colours[idx]
+    return surface
+
+
+@numba.njit(cache=True, nogil=True)
+def _draw_discs(uv, depth, radius, near, disc, owner):  # pragma: no cover - compiled
+    """Each point i a disc of ``radius[i]`` px around ``uv[i]`` (column, row) in the (H, W)
+    rasters: where it is the nearest so far, ``near`` takes its depth, ``disc`` its radius
+    and ``owner`` its index i."""
+    h, w = near.shape
+    for i in range(depth.shape[0]):
+        cu, cv, r = uv[i, 0], uv[i, 1], radius[i]
+        r2 = r * r
+        for y in range(max(0, int(cv - r)), min(h - 1, int(cv + r) + 1) + 1):
+            dy = y - cv
+            for x in range(max(0, int(cu - r)), min(w - 1, int(cu + r) + 1) + 1):
+                dx = x - cu
+                if dx * dx + dy * dy <= r2 and depth[i] < near[y, x]:
+                    near[y, x] = depth[i]
+                    disc[y, x] = r
+                    owner[y, x] = i
 
 
 def zbuffer_keep(
