@@ -634,10 +634,12 @@ def surface_for_view(
 def reach_px(
     depth: np.ndarray, zparams: ZBufferParams, focal_px: float, spacing: np.ndarray | None
 ) -> np.ndarray:
-    """(N,) float64 px: each point's reach in the weighted z-buffer's adaptive window,
+    """(N,) float64 px: the adaptive part of each point's reach in the weighted z-buffer,
     ``f · s / z`` with ``s = max(point_spacing_m, spacing_factor · spacing)`` (the cloud's
     measured spacing of its class, (N,) metres, or None: ``point_spacing_m`` alone), for
-    points at camera depth ``depth`` (N,) metres (:mod:`streetcd.detect.zbuffer`)."""
+    points at camera depth ``depth`` (N,) metres. The z-buffer's window also has a floor of
+    ``weighted_window_px / 2``, left out here: only near points, far above it, use this
+    (:mod:`streetcd.detect.zbuffer` applies the same rule inside its kernel)."""
     s = np.full(depth.shape, float(zparams.point_spacing_m))
     if spacing is not None:
         s = np.maximum(s, zparams.spacing_factor * np.asarray(spacing, np.float64))
