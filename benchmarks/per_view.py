@@ -227,7 +227,10 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     labels = superpixels(stretched, surf.classes, params.graphcut)
     t2 = time.perf_counter()
     ground = kind == "colour" and road_told(cloud.classification, params.classes)
-    change, _ = fuse_appearance(image, surf, change, local, params, ground=ground)
+    inferred = infers(cloud.classification, params.classes)
+    change, _ = fuse_appearance(
+        image, surf, change, local, params, ground=ground, inferred=inferred
+    )
     t3 = time.perf_counter()
     if params.texture.enabled and greys is not None:
         texture = _texture(*greys, surf, local, params, working)

@@ -26,7 +26,7 @@ from typing import Any
 import yaml
 
 from streetcd import classes
-from streetcd.classes import GROUND
+from streetcd.classes import FURNITURE, GROUND, RAILING, SIGN
 from streetcd.errors import InputError
 
 REFERENCE_WIDTH_PX = 4000
@@ -356,6 +356,12 @@ class AppearanceParams:
     # pixels without a surface within this fraction of gap_px of the classes count as them
     # (a railing's surface is mostly holes between its bars); 0: class pixels only
     hole_reach: float = 0.6  # tuned, docs/TUNING.md
+    # our addition (issue 16): ... near these roles only (empty: near any checked class),
+    # where the cloud's own classes give the roles (inferred roles: near any). Not near
+    # poles: a pole near the camera is closed by its own points (surface.point_fill_classes),
+    # and a far pole's holes are the sky and the street behind its thin outline, which the
+    # check took for the pole (docs/TUNING.md, thirty-second round)
+    hole_classes: tuple[int, ...] = (GROUND, SIGN, RAILING, FURNITURE)
     dark_level: float = 24.0  # ε, added to R+G+B (0–765) so dark pixels have no chroma noise
     chroma_weight: float = 2.0  # w_c, weight of the L1 chromaticity difference (0–2)
     brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
@@ -380,6 +386,7 @@ class AppearanceParams:
     def __post_init__(self) -> None:
         _codes(self, "appearance.classes", "classes")
         _codes(self, "appearance.ground_classes", "ground_classes")
+        _codes(self, "appearance.hole_classes", "hole_classes")
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
         _check(
             0 <= self.intensity_same_rgb < self.intensity_differ_rgb,
@@ -512,6 +519,13 @@ class TextureParams:
     # depth (σ = blur_m · f / z px): a railing's bars (10-12 cm apart) are a grating that no
     # single depth lines up with the wall behind; its period / 3, set once
     see_through_blur_m: float = 0.04
+    # our addition (issue 16): pixels whose old surface is nearer than this (m), railings
+    # left out, take per neighbour the better of two alignments, the background's shift and
+    # the near layer's own (up to near_shift_px at REFERENCE_WIDTH_PX): a pose's translation
+    # error moves near objects more than the background behind them (f · δ / z); 0: the
+    # background's alone (docs/TUNING.md, thirty-second round)
+    near_layer_m: float = 12.0
+    near_shift_px: float = 96.0
 
     def __post_init__(self) -> None:
         _codes(self, "texture.classes", "classes")
@@ -526,6 +540,8 @@ class TextureParams:
         _check(self.window_px >= 3, "texture.window_px", self.window_px, ">= 3")
         _check(self.min_std >= 0, "texture.min_std", self.min_std, ">= 0")
         _check(self.blur_px >= 0, "texture.blur_px", self.blur_px, ">= 0")
+        _check(self.near_layer_m >= 0, "texture.near_layer_m", self.near_layer_m, ">= 0")
+        _check(self.near_shift_px >= 0, "texture.near_shift_px", self.near_shift_px, ">= 0")
         _check(
             self.see_through_blur_m >= 0,
             "texture.see_through_blur_m",
@@ -757,6 +773,9 @@ class Config:
                 del detect["texture"]["min_foreshortening"]  # off: older hashes hold
             if not self.detect.texture.blur_px:
                 del detect["texture"]["blur_px"]  # off: older hashes hold
+            if not self.detect.texture.near_layer_m:  # the background's shift alone: older hold
+                del detect["texture"]["near_layer_m"]
+                del detect["texture"]["near_shift_px"]
             if not self.detect.texture.see_through_classes:  # off: older hashes hold
                 del detect["texture"]["see_through_classes"]
                 del detect["texture"]["see_through_blur_m"]
@@ -804,6 +823,8 @@ class Config:
             del detect["appearance"]["transfer"]
         if not self.detect.appearance.ground_classes:  # the inventory alone: older hashes hold
             del detect["appearance"]["ground_classes"]
+        if not self.detect.appearance.hole_classes:  # holes near any class: older hashes hold
+            del detect["appearance"]["hole_classes"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold
             for key in [k for k in detect["appearance"] if k.startswith("intensity")]:
                 del detect["appearance"][key]

@@ -185,6 +185,28 @@ def test_holes_between_sparse_bars_join_the_railing_footprint():
     assert not joined[:30].any() and not joined[90:].any() and not joined[:, 395:].any()
 
 
+def test_holes_join_the_footprint_only_near_the_hole_classes():
+    """The holes around a pole (the sky and the street behind its thin outline) stay out
+    when ``hole_classes`` leaves poles out; a railing's still join."""
+    classes = np.full((120, 400), cls.BUILDING, np.uint8)
+    holes = np.zeros(classes.shape, bool)
+    holes[:, 20:380] = True
+    for c in range(20, 200, 60):  # railing bars 60 px apart, on the left
+        classes[40:80, c : c + 2] = cls.RAILING
+        holes[40:80, c : c + 2] = False
+    classes[10:110, 300:304] = cls.POLE  # a pole 4 px wide, on the right
+    holes[10:110, 300:304] = False
+    checked = (cls.POLE, cls.RAILING)
+    railing_gap, beside_pole = (slice(46, 74), slice(22, 140)), (slice(20, 100), slice(312, 318))
+    anywhere = footprint(classes, checked, 31, holes=holes, hole_reach=1.0)
+    assert anywhere[railing_gap].mean() > 0.95 and anywhere[beside_pole].all()
+    not_poles = footprint(
+        classes, checked, 31, holes=holes, hole_reach=1.0, hole_classes=(cls.RAILING,)
+    )
+    assert not_poles[railing_gap].mean() > 0.95 and not not_poles[beside_pole].any()
+    assert not_poles[10:110, 300:304].all()  # the pole's own pixels stay checked
+
+
 def test_registration_bands_are_opened_away_and_objects_kept():
     ref, classes = _scene()
     valid = np.ones((H, W), bool)
@@ -228,6 +250,37 @@ def test_a_bench_on_the_pavement_is_seen_only_when_the_ground_is_checked():
     none = dataclasses.replace(params, appearance=AppearanceParams(ground_classes=()))
     _, empty = fuse_appearance(image, surf, zero, view, none, ground=True)
     assert empty is not None and empty.max() == 0.0
+
+
+def test_the_holes_beside_a_pole_join_it_only_where_the_roles_are_inferred():
+    """fuse_appearance: the holes beside a pole are left out of the colour check
+    (``appearance.hole_classes``) when the cloud's own classes give the roles, and join the
+    pole when the roles are inferred (``inferred``): the near points' fill, which closes a
+    near pole, is off then."""
+    from streetcd.config import DetectParams
+    from streetcd.detect.chain import fuse_appearance
+    from streetcd.detect.surface import ViewSurface
+    from streetcd.types import Intrinsics, Pose, View
+
+    h, w = 120, 800  # wide enough for the footprint's reach (0.6 x a 27 px closing)
+    ref = np.full((h, w, 3), (120, 120, 120), np.uint8)
+    ref[::4] = (100, 100, 100)  # some texture for the colour transfer
+    classes = np.full((h, w), cls.BUILDING, np.uint8)
+    valid = np.ones((h, w), bool)
+    classes[:, 400:406] = cls.POLE
+    valid[:, 406:420] = False  # holes right of the pole: what stands behind it
+    image = ref.copy()
+    image[:, 406:420] = (60, 90, 200)  # the image shows blue there
+    surf = ViewSurface(np.full((h, w), 10.0, np.float32), classes, valid, ref)
+    view = View("v", Intrinsics(w, h, 400.0, 400.0, w / 2, h / 2), Pose(np.eye(3), np.zeros(3)))
+    zero = np.zeros((h, w), np.float32)
+    params = DetectParams()
+    beside = (slice(20, 100), slice(408, 412))
+    _, own = fuse_appearance(image, surf, zero, view, params)
+    _, inferred = fuse_appearance(image, surf, zero, view, params, inferred=True)
+    assert own is not None and inferred is not None
+    assert own[beside].max() == 0.0
+    assert inferred[beside].min() > 0.5
 
 
 def test_the_colour_check_of_a_12_mp_view_runs_at_the_cell_scale_and_finds_the_same_board():

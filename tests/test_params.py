@@ -138,7 +138,9 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
 def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
-    # so it must come from a change of the results (2026-11-30, the thirty-first round: the
+    # so it must come from a change of the results (2026-11-30, the thirty-second round: the
+    # texture cue's near layer and the colour check's holes not near poles;
+    # 1d6f3ec9e30c7274 before, from the thirty-first round: the
     # near points of poles, signs and furniture fill their surface between them;
     # d4fdd1d909361d52 before, from the thirtieth round: the
     # ground's reference colours checked where the cloud tells its road from it;
@@ -162,15 +164,39 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # railing's foot; b391d095e4e6e3b2 before that, from the sixteenth round: the rules of the
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "1d6f3ec9e30c7274"
-    # the near points' fill off (the thirty-first round's surface.point_fill_classes): the
-    # thirtieth round's hash holds
+    assert base.results_hash() == "2ff0c80dc14ddbcc"
+    # each of the thirty-second round's two changes off alone, then both: the thirty-first
+    # round's hash holds
+    near_off = TextureParams(near_layer_m=0.0)
+    any_holes = AppearanceParams(hole_classes=())
+    assert Config(DetectParams(texture=near_off)).results_hash() == "57b76b36ebbe1c97"
+    assert Config(DetectParams(appearance=any_holes)).results_hash() == "28563640f6249c72"
+    assert (
+        Config(DetectParams(texture=near_off, appearance=any_holes)).results_hash()
+        == "1d6f3ec9e30c7274"
+    )
+    # the near points' fill off too (the thirty-first round's surface.point_fill_classes):
+    # the thirtieth round's hash holds
     unfilled = SurfaceParams(point_fill_classes=())
-    assert Config(DetectParams(surface=unfilled)).results_hash() == "d4fdd1d909361d52"
-    # every older hash below was made before the points' fill existed: built without it
+    assert (
+        Config(
+            DetectParams(surface=unfilled, texture=near_off, appearance=any_holes)
+        ).results_hash()
+        == "d4fdd1d909361d52"
+    )
+    # every older hash below was made before the points' fill, the near layer and the holes'
+    # roles existed: built without them
 
     def unfilled_detect(**kw):
-        return DetectParams(**{"surface": unfilled, **kw})
+        appearance = kw.pop("appearance", any_holes)
+        if appearance.hole_classes:
+            appearance = dataclasses.replace(appearance, hole_classes=())
+        texture = kw.pop("texture", near_off)
+        if texture.near_layer_m:
+            texture = dataclasses.replace(texture, near_layer_m=0.0)
+        return DetectParams(
+            **{"surface": unfilled, "appearance": appearance, "texture": texture, **kw}
+        )
 
     # the ground's colours not checked (the thirtieth round's appearance.ground_classes off):
     # the twenty-eighth round's hash holds, and with it every earlier one below
@@ -308,7 +334,7 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     before = dataclasses.replace(
         sixteenth,
         classes=ClassMap(infer="off"),
-        texture=TextureParams(min_foreshortening=0.0, see_through_classes=()),
+        texture=TextureParams(min_foreshortening=0.0, see_through_classes=(), near_layer_m=0.0),
     )
     assert Config(before).results_hash() == "5d2d95da524a50c4"
     texture_off = Config(

@@ -19,11 +19,13 @@ from streetcd.detect.texture import (
     grey,
     grey_u8,
     local_ncc,
+    near_layer,
     surface_normals,
     surface_points,
     texture_change,
     work_size,
 )
+from streetcd.errors import InputError
 from streetcd.types import Intrinsics, Pose
 
 RNG = np.random.default_rng(5)
@@ -346,3 +348,80 @@ def test_uint8_grey_levels_are_the_float_ones_and_pass_through():
     assert g8.dtype == np.uint8 and g8.shape == (7, 9)
     assert np.array_equal(grey(g8), grey(rgb))
     assert grey_u8(g8) is g8
+
+
+BOARD_Z = 5.0
+BOARD = (-1.2, 0.6, -0.8, 0.8)  # x0, x1, y0, y1 (m) of a textured board in front of the wall
+
+
+def _render_board(wall: np.ndarray, board: np.ndarray | None, center_x: float) -> np.ndarray:
+    """:func:`_render` with a board at z = BOARD_Z in front of the wall (None: no board)."""
+    image = _render(wall, center_x)
+    if board is None:
+        return image
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float32)
+    x = center_x + (u - INTR.cx) / INTR.fx * BOARD_Z
+    y = (v - INTR.cy) / INTR.fy * BOARD_Z
+    on = (x >= BOARD[0]) & (x < BOARD[1]) & (y >= BOARD[2]) & (y < BOARD[3])
+    grey = cv2.remap(board, x * 100 + 600, y * 100 + 600, cv2.INTER_LINEAR)
+    image[on] = np.clip(grey, 0, 255).astype(np.uint8)[on][:, None]
+    return image
+
+
+def _board_depth(center_x: float) -> np.ndarray:
+    """(H, W) float32 depth of the wall and the board seen from (center_x, 0, 0)."""
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float32)
+    x = center_x + (u - INTR.cx) / INTR.fx * BOARD_Z
+    y = (v - INTR.cy) / INTR.fy * BOARD_Z
+    on = (x >= BOARD[0]) & (x < BOARD[1]) & (y >= BOARD[2]) & (y < BOARD[3])
+    return np.where(on, BOARD_Z, WALL_Z).astype(np.float32)
+
+
+@pytest.mark.parametrize("board_there", [True, False])
+def test_a_near_object_off_the_backgrounds_shift_is_aligned_by_its_own_layer(board_there):
+    wall, board = _wall_texture(), _wall_texture()
+    # the neighbour was taken 0.4 m nearer the view than its pose says: the wall 10 m away moves by
+    # f·δ/z = 6 px, which the background's alignment takes out, the board 5 m away by 12 px
+    view = _render_board(wall, board if board_there else None, 0.0)
+    other = _render_board(wall, board if board_there else None, 0.6)
+    pose_p = Pose(np.eye(3), np.zeros(3))
+    pose_q = Pose.from_center(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    depth_p, depth_q = _board_depth(0.0), _board_depth(1.0)  # the old cloud has the board
+    on = depth_p == BOARD_Z
+    inner = cv2.erode(on.view(np.uint8), np.ones((11, 11), np.uint8)).astype(bool)
+    nbs = [(other, depth_q, INTR, pose_q, None)]
+    change = {}
+    for near_m in (0.0, 7.0):
+        params = TextureParams(
+            scale=1.0,
+            window_px=9,
+            max_global_shift_px=10.0 * 4000 / 160,
+            near_layer_m=near_m,
+            near_shift_px=16.0 * 4000 / 160,
+        )
+        near = near_layer(depth_p, None, params)
+        got, _ = texture_change(
+            view, depth_p, INTR, pose_p, nbs, params, 0.3, 2.0, where=on, near=near
+        )
+        change[near_m] = float(np.median(got[inner]))
+    if board_there:  # off the background's shift by 6 px, beyond the windows' 2 px search
+        assert change[0.0] > 0.5 and change[7.0] < 0.15
+    else:  # a removed board: the wall behind is 15 px + 6 px off at its depth, past 10 px
+        assert change[0.0] > 0.6 and change[7.0] > 0.6
+
+
+def test_near_layer_settings_are_checked():
+    with pytest.raises(InputError, match="near_layer_m"):
+        TextureParams(near_layer_m=-1.0)
+    with pytest.raises(InputError, match="near_shift_px"):
+        TextureParams(near_shift_px=-1.0)
+
+
+def test_the_near_layer_is_the_near_pixels_but_see_through_objects():
+    depth = np.array([[3.0, 11.9, 12.0, np.nan]], np.float32)
+    railing = np.array([[False, True, False, False]])
+    params = TextureParams(near_layer_m=12.0)
+    assert near_layer(depth, None, params).tolist() == [[True, True, False, False]]
+    assert near_layer(depth, railing, params).tolist() == [[True, False, False, False]]
+    assert near_layer(depth, None, TextureParams(near_layer_m=0.0)) is None
+    assert near_layer(depth, None, TextureParams(near_layer_m=2.0)) is None

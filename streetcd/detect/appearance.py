@@ -146,6 +146,7 @@ def footprint(
     close_px: int,
     holes: np.ndarray | None = None,
     hole_reach: float = 0.0,
+    hole_classes: tuple[int, ...] = (),
 ) -> np.ndarray:
     """(H, W) bool: the pixels of ``checked_classes`` in the (H, W) uint8 class raster, closed
     (dilated, then eroded) with a disc ``close_px`` wide, so that the see-through gaps of a
@@ -155,6 +156,8 @@ def footprint(
     the class count as the class before the closing: the surface filters drop the triangles
     between a railing's thin bars and the wall behind them, so a railing is mostly holes
     with a few pixels of its class, and gaps wider than the disc would stay open.
+    hole_classes : only holes that near these roles count (empty: near any of
+    ``checked_classes``).
     """
     mask = in_roles(classes, checked_classes)
     if close_px <= 1 or not mask.any():
@@ -169,7 +172,8 @@ def footprint(
     k = max(3, close_px // f) | 1
     if holes is not None and hole_reach > 0:
         r = max(3, int(hole_reach * close_px / f)) | 1
-        near = cv2.dilate(small, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r, r)))
+        source = _block_any(in_roles(classes, hole_classes), f) if hole_classes else small
+        near = cv2.dilate(source, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r, r)))
         small |= near & _block_any(holes, f)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, disc)
@@ -253,7 +257,14 @@ def appearance_change(
     """
     close_px = close_width_px(params, valid.shape[1])
     checked = (
-        footprint(classes, params.classes, close_px, holes=~valid, hole_reach=params.hole_reach)
+        footprint(
+            classes,
+            params.classes,
+            close_px,
+            holes=~valid,
+            hole_reach=params.hole_reach,
+            hole_classes=params.hole_classes,
+        )
         if params.gap_px > 0
         else None
     )

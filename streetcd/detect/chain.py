@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from streetcd.config import AppearanceParams, DetectParams, scale_px
+from streetcd.config import AppearanceParams, DetectParams, TextureParams, scale_px
 from streetcd.detect.align import neighbour_shifts
 from streetcd.detect.appearance import (
     appearance_change,
@@ -74,7 +74,13 @@ from streetcd.detect.seethrough import see_through_change
 from streetcd.detect.silhouette import GROUND_ROLES, near_depth_hypothesis
 from streetcd.detect.surface import ViewSurface, surface_for_view
 from streetcd.detect.sweep import nearer_depth_change
-from streetcd.detect.texture import WorkingView, grey_u8, texture_change, working_view
+from streetcd.detect.texture import (
+    WorkingView,
+    grey_u8,
+    near_layer,
+    texture_change,
+    working_view,
+)
 from streetcd.errors import (
     EmptyViewError,
     InputError,
@@ -290,8 +296,9 @@ def detect_view(
     if params.appearance.enabled and kind != "colour":
         _tell_no_colours(surfaces, kind)
     ground = kind == "colour" and road_told(cloud.classification, params.classes)
+    inferred = infers(cloud.classification, params.classes)
     fused, appearance = fuse_appearance(
-        image, surf, change, local, params, kind or "colour", ground=ground
+        image, surf, change, local, params, kind or "colour", ground=ground, inferred=inferred
     )
     if appearance is not None:
         lap("appearance")
@@ -356,6 +363,7 @@ def fuse_appearance(
     kind: str = "colour",
     *,
     ground: bool = False,
+    inferred: bool = False,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The change eq. 7 sees, ``max(C_p, k · A_p)``, and ``A_p`` (:mod:`streetcd.detect.appearance`)
     of the view ``image`` (H, W, 3) uint8 on its surface ``surf``; ``(change, None)`` when the
@@ -363,16 +371,24 @@ def fuse_appearance(
     "intensity" (:func:`reference_kind`): ``surf.colour`` holds intensity codes, and ``A_p``
     is the intensity check's (:mod:`streetcd.detect.intensity`). ground: the colour check
     looks at ``appearance.ground_classes`` as well (:func:`detect_view` asks for it when the
-    cloud has colours and tells its road from its ground, :func:`~streetcd.detect.roles.road_told`)."""
+    cloud has colours and tells its road from its ground, :func:`~streetcd.detect.roles.road_told`).
+    inferred: the cloud's roles are inferred from its geometry (:func:`~streetcd.detect.roles.infers`):
+    the holes join the footprint near any role, ``appearance.hole_classes`` left aside, since
+    the near points' fill that closes a near pole is off then (:func:`view_surface_of`); an
+    inferred pole is whatever stands upright, and its holes are the rest of it. Without this,
+    the real case's twin through the nightly pipeline flagged a view
+    (``tests/test_real_pipeline.py::test_the_real_unchanged_twin_reports_nothing``)."""
     if not params.appearance.enabled or surf.colour is None:
         return change, None
     radius = registration_radius_px(local.intrinsics.width, params.correlate)
+    ap = params.appearance
+    if inferred and ap.hole_classes:
+        ap = replace(ap, hole_classes=())
     if kind == "intensity":
         appearance = intensity_change(
-            image, surf.colour[..., 0], surf.valid, surf.classes, params.appearance, radius
+            image, surf.colour[..., 0], surf.valid, surf.classes, ap, radius
         )
     else:
-        ap = params.appearance
         if ground and ap.ground_classes:
             ap = replace(ap, classes=ap.classes + ap.ground_classes)
         appearance = _colour_check_at_cell_scale(
@@ -556,11 +572,18 @@ def _texture(
         where,
         tp.blur_px,
         working,
+        near_layer(surf.depth, _see_through_roles(surf, tp), tp),
     )
     if tp.see_through_classes:
         np.maximum(texture, _see_through(image, surf, local, seen, params), out=texture)
     weigh_low_classes(texture, surf.classes, params.correlate)
     return texture
+
+
+def _see_through_roles(surf: ViewSurface, tp: TextureParams) -> np.ndarray | None:
+    """(H, W) bool, the pixels whose old surface is of ``tp.see_through_classes``, or None
+    when there are none."""
+    return in_roles(surf.classes, tp.see_through_classes) if tp.see_through_classes else None
 
 
 def _see_through(

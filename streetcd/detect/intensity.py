@@ -130,7 +130,9 @@ def intensity_change(
     width = valid.shape[1]
     close_px = close_width_px(params, width)
     if params.gap_px > 0:
-        checked = footprint(classes, params.classes, close_px, ~valid, params.hole_reach)
+        checked = footprint(
+            classes, params.classes, close_px, ~valid, params.hole_reach, params.hole_classes
+        )
     # the surroundings' colour is smooth: it is taken on f × f blocks (cost: docs/DECISIONS.md)
     f = max(1, int(round(width / WORK_WIDTH_PX)))
     grow = 2 * (registration_px + int(round(scale_px(params.intensity_margin_px, width))))

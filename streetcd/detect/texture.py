@@ -117,6 +117,7 @@ def texture_change(
     where: np.ndarray | None = None,
     blur_px: float = 0.0,
     prepared: WorkingView | None = None,
+    near: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``T_p`` of the module docstring for view ``p``, at full resolution.
 
@@ -137,7 +138,9 @@ def texture_change(
     ``TextureParams.blur_px``, which the see-through test leaves out: it low-passes itself).
     prepared : the view and ``neighbours`` at the cue's working size (:func:`working_view`,
     the same ``depth_p``, images and poses), read instead of made again; None: made here.
-    Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
+    near : (H, W) bool, the near layer (our addition; :func:`near_layer`): where each
+    neighbour's NCC is also taken at the layer's own shift, up to ``params.near_shift_px``
+    (:func:`_near_layer`); None: nowhere. Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
     textured evidence per pixel).
     """
     h, w = depth_p.shape
@@ -163,6 +166,12 @@ def texture_change(
         support = np.zeros(depth_b.shape, np.uint8)
         tiles = _tiles_near(where, small, box, reach=params.window_px // 2 + radius)
         background = background_mask(where, small, box, params.window_px) if search > 0 else None
+        layer = None  # the near layer at the cue's size, over the box
+        if near is not None and search > 0:
+            small_near = cv2.resize(near.view(np.uint8), small, interpolation=cv2.INTER_NEAREST)
+            layer = small_near[rows, cols] > 0
+            layer = layer if layer.any() else None
+        near_search = round(scale_px(params.near_shift_px, w, minimum=0.0) * s)
         surface = None  # (points, normals) of the view's surface, for the angle test
         if params.min_foreshortening > 0:
             points = surface_points(depth_b, rays)
@@ -184,6 +193,20 @@ def texture_change(
             ncc, textured = _best_ncc_on(
                 _reach_for(tiles, offset), grey_p, warped, valid, params, radius, offset
             )
+            if layer is not None:
+                ncc, textured = _near_layer(
+                    ncc,
+                    textured,
+                    layer,
+                    tiles,
+                    grey_p,
+                    warped,
+                    valid,
+                    params,
+                    radius,
+                    offset,
+                    near_search,
+                )
             np.minimum(change, np.clip(1.0 - ncc, 0.0, 1.0), out=change, where=textured)
             support += textured
         change[support == 0] = 0.0
@@ -429,6 +452,60 @@ def background_mask(
     mask = cv2.resize(where.view(np.uint8), small, interpolation=cv2.INTER_NEAREST)
     mask = cv2.dilate(mask, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8))
     return mask[rows, cols] == 0
+
+
+def near_layer(
+    depth: np.ndarray, see_through: np.ndarray | None, params: TextureParams
+) -> np.ndarray | None:
+    """(H, W) bool, the near layer of a view (our addition, issue 16): the pixels whose old
+    surface is nearer than ``params.near_layer_m`` metres, those of see-through objects
+    (``see_through``, bool, or None) left out: through a railing's gaps the wall behind
+    shows, and aligning on it would take a hedge in the railing's place for the railing.
+    None when the layer is off (``near_layer_m`` 0) or empty. depth : (H, W) float32 metres
+    (NaN = none)."""
+    if params.near_layer_m <= 0:
+        return None
+    with np.errstate(invalid="ignore"):
+        near = depth < params.near_layer_m
+    if see_through is not None:
+        near &= ~see_through
+    return near if near.any() else None
+
+
+def _near_layer(
+    ncc: np.ndarray,
+    textured: np.ndarray,
+    near: np.ndarray,
+    tiles: _Tiles | None,
+    grey_p: np.ndarray,
+    warped: np.ndarray,
+    valid: np.ndarray,
+    params: TextureParams,
+    radius: int,
+    offset: tuple[int, int],
+    search: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``ncc`` and ``textured`` of one neighbour (:func:`_best_ncc_on` at the background's
+    ``offset``) with the ``near`` pixels (bool, the box's) taking the better of that and the
+    NCC at the near layer's own shift: :func:`global_shift` of the warped neighbour over its
+    valid near pixels, up to ``search`` px. A pose's translation error δ moves a point by
+    f · δ / z px: a pole or a board 9 m away lands off the shift fitted on the wall 16 m
+    behind it, while a removed object's pixels, warped through its old depth, show the
+    background displaced by the parallax between the two depths, most often far past
+    ``search``. Unchanged where the layer is too small to align on (64 px) or its shift is
+    the background's."""
+    layer = valid & near
+    if np.count_nonzero(layer) < 64:
+        return ncc, textured
+    shift = global_shift(grey_p, warped, layer, search)
+    if shift == offset:
+        return ncc, textured
+    ncc_near, textured_near = _best_ncc_on(
+        _reach_for(tiles, shift), grey_p, warped, valid, params, radius, shift
+    )
+    textured_near &= near
+    better = textured_near & (~textured | (ncc_near > ncc))
+    return np.where(better, ncc_near, ncc), textured | textured_near
 
 
 def _reach_for(tiles: _Tiles | None, offset: tuple[int, int]) -> _Tiles | None:
