@@ -205,6 +205,15 @@ def test_holes_join_the_footprint_only_near_the_hole_classes():
     )
     assert not_poles[railing_gap].mean() > 0.95 and not not_poles[beside_pole].any()
     assert not_poles[10:110, 300:304].all()  # the pole's own pixels stay checked
+    # a role among hole_classes that is not checked brings no holes (the ground, when the
+    # colour check leaves it out)
+    classes[10:110, 240:244] = cls.GROUND
+    holes[10:110, 240:244] = False
+    beside_ground = (slice(20, 100), slice(250, 256))
+    ground_too = footprint(
+        classes, checked, 31, holes=holes, hole_reach=1.0, hole_classes=(cls.GROUND, cls.RAILING)
+    )
+    assert not ground_too[beside_ground].any() and ground_too[railing_gap].mean() > 0.95
 
 
 def test_registration_bands_are_opened_away_and_objects_kept():

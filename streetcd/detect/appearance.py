@@ -156,8 +156,8 @@ def footprint(
     the class count as the class before the closing: the surface filters drop the triangles
     between a railing's thin bars and the wall behind them, so a railing is mostly holes
     with a few pixels of its class, and gaps wider than the disc would stay open.
-    hole_classes : only holes that near these roles count (empty: near any of
-    ``checked_classes``).
+    hole_classes : only holes near those of ``checked_classes`` that are among these roles
+    count (empty: near any of ``checked_classes``); a role not checked brings no holes.
     """
     mask = in_roles(classes, checked_classes)
     if close_px <= 1 or not mask.any():
@@ -172,7 +172,10 @@ def footprint(
     k = max(3, close_px // f) | 1
     if holes is not None and hole_reach > 0:
         r = max(3, int(hole_reach * close_px / f)) | 1
-        source = _block_any(in_roles(classes, hole_classes), f) if hole_classes else small
+        source = small
+        if hole_classes:
+            roles = tuple(c for c in checked_classes if c in hole_classes)
+            source = _block_any(in_roles(classes, roles), f)
         near = cv2.dilate(source, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (r, r)))
         small |= near & _block_any(holes, f)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))

@@ -140,7 +140,8 @@ def texture_change(
     the same ``depth_p``, images and poses), read instead of made again; None: made here.
     near : (H, W) bool, the near layer (our addition; :func:`near_layer`): where each
     neighbour's NCC is also taken at the layer's own shift, up to ``params.near_shift_px``
-    (:func:`_near_layer`); None: nowhere. Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
+    (:func:`_near_layer`); None: nowhere.
+    Returns ``change`` (H, W) float32 in [0, 1] and ``support`` (H, W) uint8 (neighbours with
     textured evidence per pixel).
     """
     h, w = depth_p.shape
