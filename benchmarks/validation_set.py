@@ -12,13 +12,15 @@ generated once under ``out/validation/`` (the folder name holds every setting, s
 street is reused only for the same settings); ``streetcd evaluate --scene DIR --json
 DIR/eval.json --no-baselines`` then runs on each, with ``--config DIR/streetcd.yaml`` where
 the street was written with other class codes. Never tune on this set: it is for reporting.
-``--out out/dev --seeds 0,1`` makes and scores the same kinds of street for the DEVELOPMENT
-set instead; ``--config FILE`` lays a YAML of settings over each street's own (an ablation:
+``--out out/dev --seeds 0,1,2,3 --unchanged-seeds 0,2`` makes and scores the same kinds of
+street for the DEVELOPMENT set instead (``--unchanged-seeds``: whose twins; the first seed by
+default); ``--config FILE`` lays a YAML of settings over each street's own (an ablation:
 the street's class map stays, the file's values win), and ``--tag NAME`` keeps each
 street's result under ``eval-NAME.json`` so that two settings can be compared.
 
-Printed: one markdown table (street, kappa, TP %, FP %, % pixels flagged, views flagged) and
-the mean and minimum kappa per kind. "views flagged" counts, of the views with a true change,
+Printed: one markdown table (street, kappa, TP %, FP %, % pixels flagged, views flagged),
+the mean and minimum kappa per kind, and one line over every street (mean and lowest kappa,
+views flagged with a change and without). "views flagged" counts, of the views with a true change,
 those the nightly run's rule would flag, and of the views without, the same; when
 ``evaluate --scene`` gives no per-view flags (its JSON has no ``flags``), it is estimated from
 each view's flagged share against the rule's ``min_region_fraction`` (an upper bound: the
@@ -192,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pose-noise-px", type=float, default=3.0, help="pose noise, px [3]")
     ap.add_argument("--views", type=int, help="evaluate only the first N views of a street")
     ap.add_argument("--no-unchanged", action="store_true", help="skip the unchanged streets")
+    ap.add_argument(
+        "--unchanged-seeds",
+        help="seeds of the unchanged streets, e.g. 0,2 [the first of --seeds]",
+    )
     ap.add_argument("--generate-only", action="store_true", help="generate, do not evaluate")
     ap.add_argument("--out", type=Path, default=OUT, help=f"cache folder [{OUT}]")
     ap.add_argument("--config", type=Path, help="YAML of settings laid over each street's own")
@@ -204,9 +210,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--kinds: {unknown[0]!r} is not one of {', '.join(PRESETS)}")
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+        twins = seeds[:1]
+        if args.unchanged_seeds:
+            twins = [int(s) for s in args.unchanged_seeds.split(",") if s.strip()]
         w, h = (int(x) for x in args.size.lower().split("x"))
     except ValueError:
-        ap.error("--seeds takes integers such as 10,11 and --size WIDTHxHEIGHT")
+        ap.error("--seeds and --unchanged-seeds take integers such as 10,11; --size WIDTHxHEIGHT")
     streets = []
     for kind in kinds:
         for seed in seeds:
@@ -214,11 +223,13 @@ def main(argv: list[str] | None = None) -> int:
                 Street(kind, seed, True, args.images, (w, h), args.length, args.pose_noise_px)
             )
         if not args.no_unchanged:
-            streets.append(  # the same pose noise: false alarms under registration error
-                Street(kind, seeds[0], False, args.images, (w, h), args.length, args.pose_noise_px)
+            streets.extend(  # the same pose noise: false alarms under registration error
+                Street(kind, seed, False, args.images, (w, h), args.length, args.pose_noise_px)
+                for seed in twins
             )
 
     rows, kappas = [], {k: [] for k in kinds}
+    views = [0, 0, 0, 0]  # with a change: flagged, all; without: flagged, all
     for street in streets:
         folder, seconds = generate(street, args.out)
         took = (
@@ -230,6 +241,10 @@ def main(argv: list[str] | None = None) -> int:
         data = evaluate(folder, args.views, args.config, args.tag)
         o = data["overall"]
         with_change, without = view_flags(folder, data)
+        for i, counts in ((0, with_change), (2, without)):
+            flagged, total = counts.lstrip("≤").split("/")
+            views[i] += int(flagged)
+            views[i + 1] += int(total)
         if street.changes and o["kappa"] is not None:
             kappas[street.kind].append(o["kappa"])
         rows.append(
@@ -257,7 +272,18 @@ def main(argv: list[str] | None = None) -> int:
     for kind, ks in kappas.items():
         mean = _num(statistics.fmean(ks), 3) if ks else "–"
         print(f"| {kind} | {len(ks)} | {mean} | {_num(min(ks), 3) if ks else '–'} |")
+    every = [k for ks in kappas.values() for k in ks]
+    if every:
+        print(
+            f"\nStreets with changes: {len(every)}, mean kappa {statistics.fmean(every):.3f}"
+            f" (lowest {min(every):.3f}); views flagged: with a change {_share(*views[:2])},"
+            f" without {_share(*views[2:])}"
+        )
     return 0
+
+
+def _share(part: int, whole: int) -> str:
+    return f"{part} of {whole}" + (f" ({100 * part / whole:.1f} %)" if whole else "")
 
 
 if __name__ == "__main__":
