@@ -233,7 +233,8 @@ def steps_once(scene, params, view, image, neighbours) -> dict[str, float]:
     )
     t3 = time.perf_counter()
     if params.texture.enabled and greys is not None:
-        texture = _texture(*greys, surf, local, params, working)
+        coloured = params.appearance.enabled and kind == "colour"  # as detect_view
+        texture = _texture(*greys, surf, local, params, working, coloured)
         change = np.maximum(change, np.float32(params.texture.weight) * texture)
     t4 = time.perf_counter()
     energy = node_energy(change, params.graphcut.a, params.graphcut.b)

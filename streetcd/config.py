@@ -519,6 +519,13 @@ class TextureParams:
     # depth (σ = blur_m · f / z px): a railing's bars (10-12 cm apart) are a grating that no
     # single depth lines up with the wall behind; its period / 3, set once
     see_through_blur_m: float = 0.04
+    # our addition (issue 16): ... and at least this σ (px at the working size) where the old
+    # cloud has colours: the colour check reads the same footprint there and sees a hedge
+    # where a railing stood by its colour, so the test can give up the detail in which a far
+    # railing's bars, finer than two working pixels, look like change under pose error;
+    # 0 (the default): the metric blur alone. 1.5 was measured and left off: development
+    # +0.003, validation -0.0004 (docs/TUNING.md, thirty-third round)
+    see_through_colour_blur_px: float = 0.0
     # our addition (issue 16): pixels whose old surface is nearer than this (m), railings
     # left out, take per neighbour the better of two alignments, the background's shift and
     # the near layer's own (up to near_shift_px at REFERENCE_WIDTH_PX): a pose's translation
@@ -546,6 +553,12 @@ class TextureParams:
             self.see_through_blur_m >= 0,
             "texture.see_through_blur_m",
             self.see_through_blur_m,
+            ">= 0",
+        )
+        _check(
+            self.see_through_colour_blur_px >= 0,
+            "texture.see_through_colour_blur_px",
+            self.see_through_colour_blur_px,
             ">= 0",
         )
         _check(0 < self.scale <= 1, "texture.scale", self.scale, "in (0, 1]")
@@ -779,8 +792,11 @@ class Config:
             if not self.detect.texture.see_through_classes:  # off: older hashes hold
                 del detect["texture"]["see_through_classes"]
                 del detect["texture"]["see_through_blur_m"]
+                del detect["texture"]["see_through_colour_blur_px"]
             else:  # its low-pass moved to the cue's working size (2026-11-29): redo the views
                 detect["texture"]["see_through_version"] = SEE_THROUGH_VERSION
+                if not self.detect.texture.see_through_colour_blur_px:  # older hashes hold
+                    del detect["texture"]["see_through_colour_blur_px"]
         if self.detect.classes.infer == "off":
             del detect["classes"]["infer"]  # the roles as before it existed: older hashes hold
         else:  # the inference's rules changed the roles of such clouds (2026-11-29): redo them

@@ -165,12 +165,19 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
     assert base.results_hash() == "2ff0c80dc14ddbcc"
+    # the thirty-third round's floor for coloured clouds, a switch left off: on, it is hashed
+    floored_colours = TextureParams(see_through_colour_blur_px=1.5)
+    assert Config(DetectParams(texture=floored_colours)).results_hash() == "26f5e1eea8c8e657"
+    floorless = TextureParams()
     # each of the thirty-second round's two changes off alone, then both: the thirty-first
     # round's hash holds
-    near_off = TextureParams(near_layer_m=0.0)
+    near_off = TextureParams(near_layer_m=0.0, see_through_colour_blur_px=0.0)
     any_holes = AppearanceParams(hole_classes=())
     assert Config(DetectParams(texture=near_off)).results_hash() == "57b76b36ebbe1c97"
-    assert Config(DetectParams(appearance=any_holes)).results_hash() == "28563640f6249c72"
+    assert (
+        Config(DetectParams(texture=floorless, appearance=any_holes)).results_hash()
+        == "28563640f6249c72"
+    )
     assert (
         Config(DetectParams(texture=near_off, appearance=any_holes)).results_hash()
         == "1d6f3ec9e30c7274"
@@ -184,16 +191,16 @@ def test_the_results_hash_covers_exactly_what_changes_results():
         ).results_hash()
         == "d4fdd1d909361d52"
     )
-    # every older hash below was made before the points' fill, the near layer and the holes'
-    # roles existed: built without them
+    # every older hash below was made before the points' fill, the near layer, the holes'
+    # roles and the see-through test's floor existed: built without them
 
     def unfilled_detect(**kw):
         appearance = kw.pop("appearance", any_holes)
         if appearance.hole_classes:
             appearance = dataclasses.replace(appearance, hole_classes=())
         texture = kw.pop("texture", near_off)
-        if texture.near_layer_m:
-            texture = dataclasses.replace(texture, near_layer_m=0.0)
+        if texture.near_layer_m or texture.see_through_colour_blur_px:
+            texture = dataclasses.replace(texture, near_layer_m=0.0, see_through_colour_blur_px=0.0)
         return DetectParams(
             **{"surface": unfilled, "appearance": appearance, "texture": texture, **kw}
         )

@@ -304,7 +304,8 @@ def detect_view(
         lap("appearance")
     texture = None
     if params.texture.enabled and greys is not None:
-        texture = _texture(*greys, surf, local, params, working)
+        coloured = params.appearance.enabled and kind == "colour"
+        texture = _texture(*greys, surf, local, params, working, coloured)
         fused = np.maximum(fused, np.float32(params.texture.weight) * texture)
         lap("texture")
     if params.correlate.nearer_weight > 0 and len(seen) >= 2:
@@ -550,12 +551,15 @@ def _texture(
     local: View,
     params: DetectParams,
     working: WorkingView | None = None,
+    coloured: bool = False,
 ) -> np.ndarray:
     """The texture cue ``T_p`` (:mod:`streetcd.detect.texture`) of the view, on the pixels
     whose old surface is of ``texture.classes`` (all without), and the see-through test over
     railings (:func:`_see_through`) where it is higher, weighted by class like eq. 5. image
     and the neighbours' images: grey levels (:func:`_greys`); working: them at the cue's
-    working size (:func:`_aligned`), or None."""
+    working size (:func:`_aligned`), or None. coloured: the colour check reads the old
+    cloud's colours on this view (the see-through test's coarser low-pass then holds,
+    ``texture.see_through_colour_blur_px``)."""
     tp = params.texture
     where = None
     if tp.classes:
@@ -575,7 +579,8 @@ def _texture(
         near_layer(surf.depth, _see_through_roles(surf, tp), tp),
     )
     if tp.see_through_classes:
-        np.maximum(texture, _see_through(image, surf, local, seen, params), out=texture)
+        see_through = _see_through(image, surf, local, seen, params, coloured)
+        np.maximum(texture, see_through, out=texture)
     weigh_low_classes(texture, surf.classes, params.correlate)
     return texture
 
@@ -592,10 +597,13 @@ def _see_through(
     local: View,
     seen: Sequence[NeighbourView],
     params: DetectParams,
+    coloured: bool = False,
 ) -> np.ndarray:
     """The see-through test ``S_p`` (:mod:`streetcd.detect.seethrough`) of the view over the
     footprint of ``texture.see_through_classes``, the appearance check's
-    (:func:`streetcd.detect.appearance.footprint`: a railing's bars, gaps and holes)."""
+    (:func:`streetcd.detect.appearance.footprint`: a railing's bars, gaps and holes); with
+    ``coloured`` (the colour check looks at the same footprint), low-passed at least
+    ``texture.see_through_colour_blur_px``."""
     tp, ap = params.texture, params.appearance
     close_px = close_width_px(ap, surf.valid.shape[1])
     own = surf.valid & in_roles(surf.classes, tp.see_through_classes)
@@ -612,6 +620,7 @@ def _see_through(
         tp,
         params.correlate.occlusion_tolerance_m,
         close_px,
+        tp.see_through_colour_blur_px if coloured else 0.0,
     )
 
 

@@ -66,6 +66,7 @@ def see_through_change(
     params: TextureParams,
     occlusion_tolerance_m: float,
     reach_px: int,
+    min_blur_px: float = 0.0,
 ) -> np.ndarray:
     """``S_p`` of the module docstring for view ``p``: (H, W) float32 in [0, 1], 0 outside
     ``inside`` and in footprints without a pixel of the object's own surface.
@@ -78,7 +79,9 @@ def see_through_change(
     (``holes``) are not used: they take the smallest depth around a hole, which at a
     railing's footprint is the pavement in front of it, and would hide the plane and what is
     behind it alike. reach_px : how far from a footprint's holes their fill looks for a depth
-    (its gap width; :func:`~streetcd.detect.appearance.fill_nearest`).
+    (its gap width; :func:`~streetcd.detect.appearance.fill_nearest`). min_blur_px : the
+    low-pass's smallest σ in px at the working size (our addition): a footprint whose metric
+    blur is less is blurred this much (0: the metric blur alone).
     """
     out = np.zeros(depth_p.shape, np.float32)
     if not own.any() or not inside.any():
@@ -93,9 +96,9 @@ def see_through_change(
     for sigma, where in blur_groups(
         inside, own, depth_p, intrinsics_p.fx, params.see_through_blur_m
     ):
-        view_lp = low_pass(view, sigma * view.shape[1] / depth_p.shape[1])
+        view_lp = low_pass(view, max(min_blur_px, sigma * view.shape[1] / depth_p.shape[1]))
         blurred = [
-            (low_pass(g, sigma * g.shape[1] / width), depth, intr, pose, None)
+            (low_pass(g, max(min_blur_px, sigma * g.shape[1] / width)), depth, intr, pose, None)
             for g, width, depth, intr, pose in shrunk
         ]
         t_plane, t_behind = (
