@@ -92,11 +92,27 @@ def _see_through(
 PARAMS = TextureParams(scale=1.0, window_px=15, max_global_shift_px=0.0, see_through_classes=(66,))
 
 
+UNBLURRED = TextureParams(
+    scale=1.0,
+    window_px=15,
+    max_global_shift_px=0.0,
+    see_through_classes=(66,),
+    see_through_blur_m=0.0,
+)
+
+
+def _core(inside: np.ndarray) -> np.ndarray:
+    """The footprint's inner part, away from the railing's ends (which the neighbours see
+    past)."""
+    core = cv2.erode(inside.view(np.uint8), np.ones((9, 9), np.uint8)).view(bool)
+    core[:, :40] = core[:, -40:] = False
+    return core
+
+
 def test_a_railing_still_standing_is_no_change_and_a_hedge_where_it_stood_is():
     standing, inside = _see_through(False, PARAMS)
     hedge, _ = _see_through(True, PARAMS)
-    core = cv2.erode(inside.view(np.uint8), np.ones((9, 9), np.uint8)).view(bool)
-    core[:, :40] = core[:, -40:] = False  # the neighbours see past the railing's ends there
+    core = _core(inside)
     assert core.sum() > 2000
     assert np.median(standing[core]) < 0.1 and (standing[core] > 0.5).mean() < 0.05
     assert np.median(hedge[core]) > 0.3 and np.mean(hedge[core]) > 0.35
@@ -104,17 +120,9 @@ def test_a_railing_still_standing_is_no_change_and_a_hedge_where_it_stood_is():
 
 
 def test_without_the_low_pass_the_bars_make_a_standing_railing_look_changed():
-    unblurred = TextureParams(
-        scale=1.0,
-        window_px=15,
-        max_global_shift_px=0.0,
-        see_through_classes=(66,),
-        see_through_blur_m=0.0,
-    )
     blurred, inside = _see_through(False, PARAMS)
-    sharp, _ = _see_through(False, unblurred)
-    core = cv2.erode(inside.view(np.uint8), np.ones((9, 9), np.uint8)).view(bool)
-    core[:, :40] = core[:, -40:] = False
+    sharp, _ = _see_through(False, UNBLURRED)
+    core = _core(inside)
     assert np.mean(sharp[core]) > 2 * np.mean(blurred[core]) + 0.05
 
 
@@ -122,18 +130,10 @@ def test_the_low_pass_has_a_floor_in_working_pixels():
     """Without the metric blur the bars make the standing railing look changed; a floor of
     3 px (more than the metric blur's 1.6 px here) takes them away, and the hedge where the
     railing stood is still found through it. A floor under the metric blur changes nothing."""
-    unblurred = TextureParams(
-        scale=1.0,
-        window_px=15,
-        max_global_shift_px=0.0,
-        see_through_classes=(66,),
-        see_through_blur_m=0.0,
-    )
-    sharp, inside = _see_through(False, unblurred)
-    floored, _ = _see_through(False, unblurred, min_blur_px=3.0)
-    hedge, _ = _see_through(True, unblurred, min_blur_px=3.0)
-    core = cv2.erode(inside.view(np.uint8), np.ones((9, 9), np.uint8)).view(bool)
-    core[:, :40] = core[:, -40:] = False
+    sharp, inside = _see_through(False, UNBLURRED)
+    floored, _ = _see_through(False, UNBLURRED, min_blur_px=3.0)
+    hedge, _ = _see_through(True, UNBLURRED, min_blur_px=3.0)
+    core = _core(inside)
     assert np.mean(sharp[core]) > 2 * np.mean(floored[core]) + 0.05
     assert np.median(hedge[core]) > 0.3
     metric, _ = _see_through(False, PARAMS)
