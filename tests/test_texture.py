@@ -131,6 +131,13 @@ def test_the_cue_on_tiles_near_the_wanted_pixels_equals_the_cue_everywhere_there
     near = cv2.dilate(where.view(np.uint8), np.ones((5, 5), np.uint8)).view(bool)
     for got, want in zip(tiled, full, strict=True):
         assert (got[near] == want[near]).all()
+    # the tiles that hold a pixel of a smaller mask give the same NCC there, from fewer tiles
+    layer = np.zeros(a.shape, bool)
+    layer[100:110, 181] = True
+    held = tiles.holding(layer)
+    assert len(held.origins) == 1 and held.reach == tiles.reach
+    for got, want in zip(_best_ncc_on(held, a, b, valid, params, radius=2), full, strict=True):
+        assert (got[layer] == want[layer]).all()
 
 
 def _wall_texture() -> np.ndarray:

@@ -406,6 +406,13 @@ class _Tiles:
             ]
         return mosaic
 
+    def holding(self, mask: np.ndarray) -> _Tiles:
+        """These tiles less those whose own pixels hold none of ``mask`` ((h, w) bool over
+        the box): each pixel lies in one tile, so the NCC at ``mask`` is the same."""
+        t = TILE_PX
+        keep = [k for k, (y, c) in enumerate(self.origins) if mask[y : y + t, c : c + t].any()]
+        return _Tiles(self.origins[keep], self.shape, self.reach)
+
     def scatter(self, mosaic: np.ndarray, fill: float | bool) -> np.ndarray:
         """The inverse of :meth:`gather` for the tiles' own pixels: (h, w), ``fill`` elsewhere."""
         t, r, side = TILE_PX, self.reach, self.side
@@ -501,8 +508,10 @@ def _near_layer(
     shift = global_shift(grey_p, warped, layer, search)
     if shift == offset:
         return ncc, textured
+    # only the near pixels take this shift's NCC: the tiles without one are not computed
+    held = None if tiles is None else tiles.holding(near)
     ncc_near, textured_near = _best_ncc_on(
-        _reach_for(tiles, shift), grey_p, warped, valid, params, radius, shift
+        _reach_for(held, shift), grey_p, warped, valid, params, radius, shift
     )
     textured_near &= near
     better = textured_near & (~textured | (ncc_near > ncc))
