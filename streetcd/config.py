@@ -592,6 +592,10 @@ INFER_RULES = 3
 # while it is on: 2 (2026-11-29, nineteenth round) low-passes the images at the texture cue's
 # working size, not at a size of their own (results a little different: docs/TUNING.md).
 SEE_THROUGH_VERSION = 2
+# The version of the nearer-depth test's code (streetcd.detect.sweep), in the results hash while
+# it is on: 2 (2026-11-30, thirty-fourth round) gives no evidence unless the view has
+# neighbours on both sides (the last view of a walk flagged 5 % of an unchanged street).
+NEARER_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -829,6 +833,8 @@ class Config:
         if self.detect.correlate.nearer_weight == 0.0:  # no nearer-depth test: older hashes hold
             for key in [k for k in detect["correlate"] if k.startswith("nearer")]:
                 del detect["correlate"][key]
+        else:  # neighbours on both sides asked for since 2026-11-30: redo the views
+            detect["correlate"]["nearer_version"] = NEARER_VERSION
         if not self.detect.graphcut.energy_of_mean:  # the mean of eq. 7: older hashes hold
             del detect["graphcut"]["energy_of_mean"]
         if not self.detect.refine.apart_classes:  # the mask's components: older hashes hold

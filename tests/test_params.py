@@ -294,7 +294,8 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     nearer_on = Config(
         unfilled_detect(appearance=inventory, refine=whole, locate=unlocated, correlate=nearer)
     )
-    assert nearer_on.results_hash() == "27bc9c9b9acee9ea"
+    # with the test's version 2 (neighbours on both sides, 2026-11-30); 27bc9c9b9acee9ea before
+    assert nearer_on.results_hash() == "a74eabbf45ce327a"
     blurred = Config(
         unfilled_detect(
             appearance=inventory, refine=whole, locate=unlocated, texture=TextureParams(blur_px=1.5)

@@ -71,6 +71,19 @@ def test_an_added_plate_is_explained_by_its_nearer_depth_and_the_wall_is_not():
     assert (n[~around] > 0.5).sum() < 0.15 * (n[around] > 0.5).sum()
 
 
+def test_neighbours_all_on_one_side_give_no_evidence():
+    # the same plate, its neighbours both to the right (the last view of a walk): a nearer
+    # depth would explain the plate, and a pose error as well, so the test says nothing
+    depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
+    args = dict(fractions=(0.5,), margin=0.05, span=0.15, match=0.08, window_px=3, scale=1.0)
+    both = [(_render(x, True), depth, INTR, _pose(x), None) for x in (-1.0, 1.0)]
+    right = [(_render(x, True), depth, INTR, _pose(x), None) for x in (1.0, 2.0)]
+    common = dict(max_work_px=4000, occlusion_tolerance_m=0.3, **args)
+    view = _render(0.0, True)
+    assert nearer_depth_change(view, depth, INTR, _pose(0.0), both, **common).max() > 0.5
+    assert not nearer_depth_change(view, depth, INTR, _pose(0.0), right, **common).any()
+
+
 def test_an_unchanged_street_gives_no_evidence():
     assert _nearer(plate=False).max() == 0.0
 

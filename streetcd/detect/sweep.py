@@ -25,8 +25,12 @@ old surface (its ghost), some nearer depth often lands both neighbours on simila
 chance, but seldom on the same ones. One depth has to fit every neighbour at once: the neighbours before and after the view along
 the street shift opposite ways with depth, so a registration error of the view, which moves
 the pixel the same way in all of them, is not explained away by a nearer depth (the margin
-takes what is left). Pixels no two neighbours see, and pixels without an old surface, give no
-evidence. Computed at ``scale`` of the view's resolution, never wider than ``max_work_px``.
+takes what is left). So the test asks for that: it gives no evidence when no two of the
+neighbours' baselines from the view point more than 90° apart (:func:`opposite_baselines`), as
+at the first and last view of a walk, where every neighbour lies behind or ahead and a pose
+error shifts them all alike (docs/TUNING.md, thirty-fourth round). Pixels no two neighbours
+see, and pixels without an old surface, give no evidence. Computed at ``scale`` of the view's
+resolution, never wider than ``max_work_px``.
 """
 
 from __future__ import annotations
@@ -72,6 +76,8 @@ def nearer_depth_change(
     fractions : depth fractions in (0, 1) tried in front of the old surface.
     """
     h, w = depth_p.shape
+    if not opposite_baselines(pose_p, [nb[3] for nb in neighbours]):
+        return np.zeros((h, w), np.float32)
     s = min(float(scale), max_work_px / w)
     small = (max(1, round(w * s)), max(1, round(h * s)))
     intr_s = intrinsics_p.scaled(small[0] / w)
@@ -111,6 +117,14 @@ def nearer_depth_change(
     ok = np.isfinite(gain) & (best <= match)
     out.ravel()[todo[ok]] = np.clip((gain[ok] - margin) / span, 0.0, 1.0)
     return cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def opposite_baselines(pose_p: Pose, poses: Sequence[Pose]) -> bool:
+    """Whether two of the baselines from the view's centre to the neighbours' (``poses``)
+    point more than 90° apart (a negative dot product): neighbours on both sides of the view,
+    whose images a depth in front of the old surface shifts opposite ways."""
+    base = [np.asarray(q.center - pose_p.center, np.float64) for q in poses]
+    return any(float(a @ b) < 0 for i, a in enumerate(base) for b in base[i + 1 :])
 
 
 def worst_difference(
