@@ -41,9 +41,10 @@ def _pose(center_x: float) -> Pose:
     return Pose(np.eye(3), np.array([-center_x, 0.0, 0.0]))
 
 
-def _nearer(plate: bool, **kw) -> np.ndarray:
+def _nearer(plate: bool, at: tuple[float, ...] = (-1.0, 1.0), **kw) -> np.ndarray:
+    """``N_p`` of the view at x = 0 with neighbours at the x of ``at``."""
     depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
-    neighbours = [(_render(x, plate), depth, INTR, _pose(x), None) for x in (-1.0, 1.0)]
+    neighbours = [(_render(x, plate), depth, INTR, _pose(x), None) for x in at]
     args = {
         "fractions": (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9),
         "margin": 0.05,
@@ -74,14 +75,8 @@ def test_an_added_plate_is_explained_by_its_nearer_depth_and_the_wall_is_not():
 def test_neighbours_all_on_one_side_give_no_evidence():
     # the same plate, its neighbours both to the right (the last view of a walk): a nearer
     # depth would explain the plate, and a pose error as well, so the test says nothing
-    depth = np.full((INTR.height, INTR.width), WALL_Z, np.float32)
-    args = dict(fractions=(0.5,), margin=0.05, span=0.15, match=0.08, window_px=3, scale=1.0)
-    both = [(_render(x, True), depth, INTR, _pose(x), None) for x in (-1.0, 1.0)]
-    right = [(_render(x, True), depth, INTR, _pose(x), None) for x in (1.0, 2.0)]
-    common = dict(max_work_px=4000, occlusion_tolerance_m=0.3, **args)
-    view = _render(0.0, True)
-    assert nearer_depth_change(view, depth, INTR, _pose(0.0), both, **common).max() > 0.5
-    assert not nearer_depth_change(view, depth, INTR, _pose(0.0), right, **common).any()
+    assert _nearer(plate=True).max() > 0.5
+    assert not _nearer(plate=True, at=(1.0, 2.0)).any()
 
 
 def test_an_unchanged_street_gives_no_evidence():
