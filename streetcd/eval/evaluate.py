@@ -258,7 +258,9 @@ def regraphcut(
     return cut_apart(mask, result.classes, params.refine.apart_classes)
 
 
-def _truth(scene: Scene, rec: dict[str, Any]) -> dict[str, np.ndarray]:
+def view_truth(scene: Scene, rec: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The truth rasters of one view (its manifest record ``rec``): ``mask`` (H, W) bool,
+    ``instances`` (H, W) uint16 change-instance ids (0 none), ``dontcare`` (H, W) bool."""
     root = scene.root
     return {
         "mask": read_mask(root / rec["mask"]),
@@ -303,7 +305,7 @@ def evaluate_scene(
         for name in list(cache):  # views come in trajectory order; drop what left the window
             if name not in keep:
                 del cache[name]
-        truth = _truth(scene, scene.view_record(v))
+        truth = view_truth(scene, scene.view_record(v))
         outcomes.append(
             evaluate_view(
                 image_of(v),
