@@ -162,8 +162,11 @@ def _pct(part: float, whole: float) -> str:
 
 def print_tally(title: str, t: Tally) -> None:
     print(f"\n### {title}\n")
-    print("| change | truth px | recall | by what is behind: share (recall) |")
-    print("| --- | --- | --- | --- |")
+    if not t.truth:
+        print("No truth (unchanged streets only).")
+    else:
+        print("| change | truth px | recall | by what is behind: share (recall) |")
+        print("| --- | --- | --- | --- |")
     for name in sorted(t.truth):
         total, found = sum(t.truth[name].values()), sum(t.found[name].values())
         parts = ", ".join(
