@@ -42,10 +42,7 @@ from streetcd import classes  # noqa: E402
 from streetcd.config import DetectParams, load_config  # noqa: E402
 from streetcd.detect.cache import SurfaceCache  # noqa: E402
 from streetcd.detect.chain import DetectionResult, detect_view  # noqa: E402
-from streetcd.eval.evaluate import load_scene, view_truth  # noqa: E402
-from streetcd.geometry.neighbours import select_neighbours  # noqa: E402
-from streetcd.io.images import read_image  # noqa: E402
-from streetcd.types import View  # noqa: E402
+from streetcd.eval.evaluate import load_scene, view_inputs  # noqa: E402
 
 CUE_FLOOR = 0.3  # below this on every cue, a false pixel is "none": taken in, not evidence
 CUES = ("eq. 5", "colour", "texture", "none")
@@ -80,27 +77,9 @@ def views_of(
     scene = load_scene(folder)
     types = {c["instance_id"]: c["type"] for c in scene.manifest.get("changes", [])}
     surfaces = SurfaceCache()
-    images: dict[str, np.ndarray] = {}  # the view and its neighbours, by name
-
-    def image(v: View) -> np.ndarray:
-        if v.name not in images:
-            images[v.name] = read_image(Path(v.image or folder / "images" / v.name))
-        return images[v.name]
-
-    for v in scene.views:
-        others = [c for c in scene.views if c.name != v.name]
-        nbs = select_neighbours(
-            v,
-            others,
-            n=params.correlate.n_neighbours,
-            min_parallax_px=params.correlate.min_parallax_px,
-        )
-        for name in set(images) - {v.name, *(n.name for n in nbs)}:
-            del images[name]  # views come in trajectory order: what left the window goes
-        result = detect_view(
-            image(v), v, [(image(n), n) for n in nbs], scene.cloud, params, surfaces=surfaces
-        )
-        yield result, view_truth(scene, scene.view_record(v)), types, params
+    for v, image, nbs, truth in view_inputs(scene, scene.views, params):
+        result = detect_view(image, v, nbs, scene.cloud, params, surfaces=surfaces)
+        yield result, truth, types, params
 
 
 def tally_view(

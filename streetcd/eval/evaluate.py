@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -269,6 +269,36 @@ def view_truth(scene: Scene, rec: dict[str, Any]) -> dict[str, np.ndarray]:
     }
 
 
+def view_inputs(
+    scene: Scene, views: Sequence[View], params: DetectParams
+) -> Iterator[tuple[View, np.ndarray, list[tuple[np.ndarray, View]], dict[str, np.ndarray]]]:
+    """Per view of ``views`` (in trajectory order): the view, its image, its neighbours
+    (image, view) as ``streetcd evaluate`` picks them among all the scene's views, and its
+    truth (:func:`view_truth`). An image is read once and kept while it is in the window
+    of the view and its neighbours."""
+    cache: dict[str, np.ndarray] = {}
+
+    def image_of(v: View) -> np.ndarray:
+        if v.name not in cache:
+            path = v.image if v.image is not None else scene.root / "images" / v.name
+            cache[v.name] = read_image(Path(path))
+        return cache[v.name]
+
+    for v in views:
+        nbs = select_neighbours(
+            v,
+            [c for c in scene.views if c.name != v.name],
+            n=params.correlate.n_neighbours,
+            min_parallax_px=params.correlate.min_parallax_px,
+        )
+        keep = {v.name, *(n.name for n in nbs)}
+        for name in list(cache):  # views come in trajectory order; drop what left the window
+            if name not in keep:
+                del cache[name]
+        truth = view_truth(scene, scene.view_record(v))
+        yield v, image_of(v), [(image_of(n), n) for n in nbs], truth
+
+
 def evaluate_scene(
     root: str | Path,
     params: DetectParams | None = None,
@@ -284,39 +314,11 @@ def evaluate_scene(
     views = scene.views if max_views is None else scene.views[:max_views]
     if not views:
         raise InputError(f"{scene.root}: no views to evaluate")
-    cache: dict[str, np.ndarray] = {}
     surfaces = SurfaceCache()  # each view's surface serves it and its neighbours
-
-    def image_of(v: View) -> np.ndarray:
-        if v.name not in cache:
-            path = v.image if v.image is not None else scene.root / "images" / v.name
-            cache[v.name] = read_image(Path(path))
-        return cache[v.name]
-
     outcomes = []
-    for v in views:
-        nbs = select_neighbours(
-            v,
-            [c for c in scene.views if c.name != v.name],
-            n=params.correlate.n_neighbours,
-            min_parallax_px=params.correlate.min_parallax_px,
-        )
-        keep = {v.name, *(n.name for n in nbs)}
-        for name in list(cache):  # views come in trajectory order; drop what left the window
-            if name not in keep:
-                del cache[name]
-        truth = view_truth(scene, scene.view_record(v))
+    for v, image, nbs, truth in view_inputs(scene, views, params):
         outcomes.append(
-            evaluate_view(
-                image_of(v),
-                v,
-                [(image_of(n), n) for n in nbs],
-                scene.cloud,
-                truth,
-                params,
-                baselines,
-                surfaces,
-            )
+            evaluate_view(image, v, nbs, scene.cloud, truth, params, baselines, surfaces)
         )
         if progress is not None:
             progress(v.name)
