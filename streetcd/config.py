@@ -26,7 +26,7 @@ from typing import Any
 import yaml
 
 from streetcd import classes
-from streetcd.classes import FURNITURE, GROUND, RAILING, SIGN
+from streetcd.classes import FURNITURE, GROUND, RAILING, SIGN, VEGETATION
 from streetcd.errors import InputError
 
 REFERENCE_WIDTH_PX = 4000
@@ -350,6 +350,13 @@ class AppearanceParams:
     # added bench or bin stands on the pavement, where eq. 5 sees little (docs/TUNING.md,
     # thirtieth round); the road is left out (cars come and go on it); () for none
     ground_classes: tuple[int, ...] = (GROUND,)
+    # our addition (issue 16): checked as well, against real colours only and where the view
+    # looks down on it (below the camera's height: hedges and bushes, not the crowns seen from
+    # under them), by chromaticity alone after a white balance (per-channel gains, no offset,
+    # which keeps the hue of dark foliage): a bench or a board in front of a hedge, which eq. 5
+    # weighs by 0.2, and foliage keeps its hue where its shading differs from the scan's
+    # (docs/TUNING.md, thirty-fifth round); () for none
+    vegetation_classes: tuple[int, ...] = (VEGETATION,)
     # gaps narrower than this (px at REFERENCE_WIDTH_PX) inside an inventory object are its
     # footprint too (a railing's see-through gaps); 0 checks the class pixels only
     gap_px: float = 128.0
@@ -386,6 +393,7 @@ class AppearanceParams:
     def __post_init__(self) -> None:
         _codes(self, "appearance.classes", "classes")
         _codes(self, "appearance.ground_classes", "ground_classes")
+        _codes(self, "appearance.vegetation_classes", "vegetation_classes")
         _codes(self, "appearance.hole_classes", "hole_classes")
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
         _check(
@@ -845,6 +853,8 @@ class Config:
             del detect["appearance"]["transfer"]
         if not self.detect.appearance.ground_classes:  # the inventory alone: older hashes hold
             del detect["appearance"]["ground_classes"]
+        if not self.detect.appearance.vegetation_classes:  # no vegetation: older hashes hold
+            del detect["appearance"]["vegetation_classes"]
         if not self.detect.appearance.hole_classes:  # holes near any class: older hashes hold
             del detect["appearance"]["hole_classes"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold

@@ -17,6 +17,7 @@ from streetcd.detect.appearance import (
     fill_nearest,
     footprint,
     transfer_colours,
+    white_balance_luts,
 )
 from streetcd.detect.surface import rasterise, rgb8
 from streetcd.errors import InputError
@@ -345,3 +346,79 @@ def test_shrink_averages_whole_blocks_first():
     np.testing.assert_array_equal(
         shrink(image, (300, 225)), cv2.resize(image, (300, 225), interpolation=cv2.INTER_AREA)
     )
+
+
+def _street_with_a_hedge():
+    """A sunlit pavement (ground) over the upper three quarters and a sunlit green hedge
+    (vegetation) below, leaf-textured; the photograph shows the hedge in deep shade (0.3 as
+    bright, a little bluer) and a brown bench in front of it."""
+    rng = np.random.default_rng(3)
+    ref = np.full((H, W, 3), (170, 165, 150), np.uint8)
+    ref[::6] = (140, 135, 125)  # paving joints
+    hedge = np.array([120.0, 200.0, 90.0]) * rng.uniform(0.8, 1.2, (H // 4, W, 1))
+    ref[-(H // 4) :] = np.clip(hedge, 0, 255).astype(np.uint8)
+    classes = np.full((H, W), cls.GROUND, np.uint8)
+    classes[-(H // 4) :] = cls.VEGETATION
+    image = ref.copy()
+    image[-(H // 4) :] = np.clip(ref[-(H // 4) :] * (0.3, 0.3, 0.33), 0, 255).astype(np.uint8)
+    image[84:94, 30:50] = (120, 80, 50)  # the bench
+    return ref, classes, image
+
+
+def test_a_bench_before_a_hedge_is_seen_by_its_hue_and_the_shaded_hedge_is_not():
+    ref, classes, image = _street_with_a_hedge()
+    valid = np.ones((H, W), bool)
+    green = classes == cls.VEGETATION
+    a = appearance_change(image, ref, valid, classes, AppearanceParams(), vegetation=green)
+    assert a[86:92, 33:47].min() > 0.5
+    hedge = green.copy()
+    hedge[82:96, 28:52] = False
+    # the shade changes the hedge's brightness, not its hue: k · A stays below the S-curve's
+    # middle b / a ≈ 0.24 of eq. 7 (dark colours lose some chroma to ε, hence not 0), where
+    # the brightness term would take the median to 0.32
+    assert np.median(a[hedge]) < 0.25
+    assert a[~green].max() == 0.0  # the ground is not a checked class here
+    # without the vegetation mask the hedge is not checked at all
+    assert not appearance_change(image, ref, valid, classes, AppearanceParams()).any()
+
+
+def test_the_white_balance_is_a_gain_per_channel_without_an_offset():
+    ref, _ = _scene()
+    image = np.clip(ref.astype(np.float32) * (0.7, 0.8, 1.1), 0, 255).astype(np.uint8)
+    luts = white_balance_luts(ref, image, np.ones((H, W), bool))
+    assert (luts[:, 0] == 0).all()  # black stays black: no offset
+    mapped = np.stack([luts[c][ref[..., c]] for c in range(3)], axis=-1)
+    assert np.abs(mapped.astype(int) - image.astype(int)).max() <= 2
+    identity = white_balance_luts(ref, image, np.zeros((H, W), bool))
+    assert (identity == np.arange(256)).all()
+
+
+def test_vegetation_is_checked_only_below_the_camera_and_against_real_colours():
+    """fuse_appearance: a level camera looking along the street (local frame z up) checks the
+    hedge it looks down on, not the crown above its height; vegetation_classes () is off."""
+    from streetcd.config import DetectParams
+    from streetcd.detect.chain import below_camera, fuse_appearance
+    from streetcd.detect.surface import ViewSurface
+    from streetcd.types import Intrinsics, Pose, View
+
+    ref, classes, image = _street_with_a_hedge()
+    classes[:10] = cls.VEGETATION  # a crown at the top of the view, above the camera ...
+    image[2:8, 30:50] = (120, 80, 50)  # ... with a brown board in front of it
+    # camera axes in the local frame: x right = −y, y down = −z, z forward = +x
+    level = Pose(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]), np.zeros(3))
+    view = View("v", Intrinsics(W, H, 80.0, 80.0, W / 2, H / 2), level)
+    below = below_camera(view)
+    assert below[H // 2 + 1 :].all() and not below[: H // 2].any()
+    surf = ViewSurface(np.full((H, W), 10.0, np.float32), classes, np.ones((H, W), bool), ref)
+    zero = np.zeros((H, W), np.float32)
+    params = DetectParams()
+    _, a = fuse_appearance(image, surf, zero, view, params)
+    assert a is not None
+    assert a[86:92, 33:47].min() > 0.5  # the bench before the hedge
+    assert a[:10].max() == 0.0  # the crown seen from under it is left alone
+    off = dataclasses.replace(params, appearance=AppearanceParams(vegetation_classes=()))
+    _, none = fuse_appearance(image, surf, zero, view, off)
+    assert none is not None and none.max() == 0.0
+    # a cloud without colours gets the intensity check, which asks no vegetation
+    _, intensity = fuse_appearance(image, surf, zero, view, params, "intensity")
+    assert intensity is not None and intensity[86:92, 33:47].max() == 0.0

@@ -37,11 +37,19 @@ sees them by their geometry. The **ground** is checked as well
 adds to the classes) where the cloud has colours and tells its road from its ground: a bench
 or a bin added on the pavement stands little in front of it, so eq. 5, low-weighted there,
 sees almost nothing (docs/TUNING.md, thirtieth round). The road is not checked: cars come
-and go on it. :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before
+and go on it. The **vegetation below the camera's height** is checked by its hue alone
+(``AppearanceParams.vegetation_classes``, the ``vegetation`` pixels of
+:func:`appearance_change`; :func:`streetcd.detect.chain.fuse_appearance` picks them), the
+reference white-balanced by a gain per channel (:func:`white_balance_luts`): a bench or a
+board in front of a hedge differs from it in hue, which eq. 5's low weight on vegetation
+hides, while the foliage's own shading differs from the scan's for no change (docs/TUNING.md,
+thirty-fifth round). :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before
 the node energy of eq. 7; ``AppearanceParams(enabled=False)`` is the paper's method.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -111,6 +119,26 @@ def transfer_colours(
     """The whole (H, W, 3) uint8 reference through :func:`transfer_luts`."""
     luts = transfer_luts(reference, image, valid, model)
     return np.stack([cv2.LUT(reference[..., c], luts[c]) for c in range(3)], axis=-1)
+
+
+def white_balance_luts(reference: np.ndarray, image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(3, 256) uint8 tables scaling each channel of the reference by ``mean(I_c) / mean(M_c)``
+    over ``valid`` pixels (a von Kries white balance, every ``STAT_STRIDE``-th row and column):
+    gains without an offset, so a dark colour keeps its hue, which the gain and offset of
+    :func:`transfer_luts` do not keep (an offset of a few levels turns dark green grey).
+    Identity tables when no pixel is valid."""
+    k = STAT_STRIDE
+    pick = valid[::k, ::k]
+    if not pick.any():
+        pick, k = valid, 1
+    levels = np.arange(256, dtype=np.float64)
+    if not pick.any():
+        return np.tile(levels.astype(np.uint8), (3, 1))
+    mask = pick.astype(np.uint8)  # OpenCV's masked mean: a tenth of numpy's gather and mean
+    ref = np.array(cv2.mean(np.ascontiguousarray(reference[::k, ::k]), mask=mask)[:3])
+    img = np.array(cv2.mean(np.ascontiguousarray(image[::k, ::k]), mask=mask)[:3])
+    gains = img / np.maximum(ref, 1.0)
+    return np.clip(np.round(levels[None, :] * gains[:, None]), 0, 255).astype(np.uint8)
 
 
 def colour_distance(
@@ -244,6 +272,7 @@ def appearance_change(
     classes: np.ndarray,
     params: AppearanceParams = _DEFAULTS,
     registration_px: int = 0,
+    vegetation: np.ndarray | None = None,
 ) -> np.ndarray:
     """Appearance change ``A_p`` (module docstring) of one view.
 
@@ -257,6 +286,11 @@ def appearance_change(
     px leaves along an object's outline (image and reference shifted against each other)
     go, while anything wider keeps its extent: the tolerance eq. 5 has through
     :func:`streetcd.detect.correlate.colour_envelope`.
+
+    vegetation : (H, W) bool or None, pixels of vegetation to check as well (with a surface,
+    outside the footprint): there ``A_p`` is the chromaticity term alone, the reference
+    white-balanced (:func:`white_balance_luts`), not transferred: foliage's shading differs
+    from the scan's, its hue does not, and a bench or a board in front of it differs in hue.
     """
     close_px = close_width_px(params, valid.shape[1])
     checked = (
@@ -274,11 +308,17 @@ def appearance_change(
     if checked is None:
         checked = valid & in_roles(classes, params.classes)
     out = np.zeros(valid.shape, dtype=np.float32)
-    if not checked.any() or not valid.any():
+    green = None if vegetation is None else vegetation & valid & ~checked
+    if not valid.any() or not (checked.any() or (green is not None and green.any())):
         return out
-    luts = transfer_luts(reference, image, valid, params.transfer)
-    ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
-    out[checked] = reference_distance(image[checked], ref, luts, params)
+    if checked.any():
+        luts = transfer_luts(reference, image, valid, params.transfer)
+        ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
+        out[checked] = reference_distance(image[checked], ref, luts, params)
+    if green is not None and green.any():
+        hue_only = replace(params, brightness_weight=0.0)
+        balance = white_balance_luts(reference, image, valid)
+        out[green] = reference_distance(image[green], reference[green], balance, hue_only)
     if registration_px > 0:
         square = np.ones((2 * registration_px + 1, 2 * registration_px + 1), np.uint8)
         return np.asarray(cv2.morphologyEx(out, cv2.MORPH_OPEN, square), dtype=np.float32)

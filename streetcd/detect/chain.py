@@ -43,6 +43,7 @@ from streetcd.detect.cache import SurfaceCache, cloud_rgb8, wants_colour
 from streetcd.detect.correlate import (
     Neighbour,
     NeighbourView,
+    camera_rays,
     envelope_levels,
     hole_depths,
     pair_lut,
@@ -378,7 +379,9 @@ def fuse_appearance(
     the near points' fill that closes a near pole is off then (:func:`view_surface_of`); an
     inferred pole is whatever stands upright, and its holes are the rest of it. Without this,
     the real case's twin through the nightly pipeline flagged a view
-    (``tests/test_real_pipeline.py::test_the_real_unchanged_twin_reports_nothing``)."""
+    (``tests/test_real_pipeline.py::test_the_real_unchanged_twin_reports_nothing``). With
+    real colours, the ``appearance.vegetation_classes`` pixels below the camera
+    (:func:`below_camera`) are checked by their hue as well."""
     if not params.appearance.enabled or surf.colour is None:
         return change, None
     radius = registration_radius_px(local.intrinsics.width, params.correlate)
@@ -392,8 +395,11 @@ def fuse_appearance(
     else:
         if ground and ap.ground_classes:
             ap = replace(ap, classes=ap.classes + ap.ground_classes)
+        vegetation = None
+        if ap.vegetation_classes:
+            vegetation = in_roles(surf.classes, ap.vegetation_classes) & below_camera(local)
         appearance = _colour_check_at_cell_scale(
-            image, surf.colour, surf.valid, surf.classes, ap, params
+            image, surf.colour, surf.valid, surf.classes, ap, params, vegetation
         )
     return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
 
@@ -429,6 +435,17 @@ def _sampled(raster: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarr
     return np.take(np.take(raster, rows, axis=0), cols, axis=1)
 
 
+def below_camera(view: View) -> np.ndarray:
+    """(H, W) bool: the pixels of ``view`` whose ray points downwards in the local frame (z
+    up), i.e. whose points lie below the camera's height, whatever their depth: what a
+    street camera looks down on (the pavement, a hedge), not what it looks up at (a tree's
+    crown, seen from under it where the scanner saw it from the side)."""
+    rays = camera_rays(view.intrinsics)  # (H, W, 2): x/z, y/z in the camera frame
+    r = np.asarray(view.pose.R, np.float64)  # world → camera; a ray's world z is (Rᵀ d)_z
+    up = rays[..., 0] * np.float32(r[0, 2]) + rays[..., 1] * np.float32(r[1, 2])
+    return np.asarray(up + np.float32(r[2, 2]) < 0)
+
+
 def _colour_check_at_cell_scale(
     image: np.ndarray,
     colour: np.ndarray,
@@ -436,10 +453,12 @@ def _colour_check_at_cell_scale(
     classes: np.ndarray,
     ap: AppearanceParams,
     params: DetectParams,
+    vegetation: np.ndarray | None = None,
 ) -> np.ndarray:
     """The reference-colour check ``A_p`` (H, W) float32 of ``image`` (H, W, 3) uint8 against
     the old cloud's ``colour`` (H, W, 3) uint8 on the surface ``valid`` (H, W) bool with its
-    ``classes`` (H, W) uint8, computed where a superpixel cell is about ``CHANGE_CELL_PX``
+    ``classes`` (H, W) uint8 (and the ``vegetation`` (H, W) bool pixels it checks by hue,
+    :func:`streetcd.detect.appearance.appearance_change`), computed where a superpixel cell is about ``CHANGE_CELL_PX``
     wide and upsampled (bilinear), as eq. 5 is (:func:`_raw_change_at_cell_scale`): the graph
     cut sees it through superpixel means, and at 12 MP the footprint's hole fill and the
     colour distances over every pixel took ~0.27 s (docs/BENCHMARKS.md). Up to ~2 MP it runs
@@ -451,7 +470,7 @@ def _colour_check_at_cell_scale(
     hs, ws = _cell_shape((h, w), params)
     if (hs, ws) == (h, w):
         radius = registration_radius_px(w, params.correlate)
-        return appearance_change(image, colour, valid, classes, ap, radius)
+        return appearance_change(image, colour, valid, classes, ap, radius, vegetation)
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
     a = appearance_change(
         _sampled(image, rows, cols),
@@ -460,6 +479,7 @@ def _colour_check_at_cell_scale(
         _sampled(classes, rows, cols),
         ap,
         registration_radius_px(ws, params.correlate),
+        None if vegetation is None else _sampled(vegetation, rows, cols),
     )
     return np.asarray(cv2.resize(a, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
 
