@@ -26,7 +26,7 @@ from typing import Any
 import yaml
 
 from streetcd import classes
-from streetcd.classes import FURNITURE, GROUND, RAILING, SIGN, VEGETATION
+from streetcd.classes import BUILDING, FURNITURE, GROUND, RAILING, SIGN, VEGETATION
 from streetcd.errors import InputError
 
 REFERENCE_WIDTH_PX = 4000
@@ -350,13 +350,14 @@ class AppearanceParams:
     # added bench or bin stands on the pavement, where eq. 5 sees little (docs/TUNING.md,
     # thirtieth round); the road is left out (cars come and go on it); () for none
     ground_classes: tuple[int, ...] = (GROUND,)
-    # our addition (issue 16): checked as well, against real colours only and where the view
-    # looks down on it (below the camera's height: hedges and bushes, not the crowns seen from
-    # under them), by chromaticity alone after a white balance (per-channel gains, no offset,
-    # which keeps the hue of dark foliage): a bench or a board in front of a hedge, which eq. 5
-    # weighs by 0.2, and foliage keeps its hue where its shading differs from the scan's
+    # our addition (issue 16): checked as well by their hue alone, against real colours only
+    # and where the view looks down on them (below the camera's height: hedges, bushes and
+    # ground floors, not the crowns and upper floors seen from under them), after a white
+    # balance (per-channel gains, no offset, which keeps the hue of dark foliage): a bench or
+    # a board in front of a hedge, which eq. 5 weighs by 0.2, or in front of a wall of
+    # nearly its brightness; shading and cast shadows change brightness, not hue
     # (docs/TUNING.md, thirty-fifth round); () for none
-    vegetation_classes: tuple[int, ...] = (VEGETATION,)
+    hue_classes: tuple[int, ...] = (VEGETATION, BUILDING)
     # gaps narrower than this (px at REFERENCE_WIDTH_PX) inside an inventory object are its
     # footprint too (a railing's see-through gaps); 0 checks the class pixels only
     gap_px: float = 128.0
@@ -393,7 +394,7 @@ class AppearanceParams:
     def __post_init__(self) -> None:
         _codes(self, "appearance.classes", "classes")
         _codes(self, "appearance.ground_classes", "ground_classes")
-        _codes(self, "appearance.vegetation_classes", "vegetation_classes")
+        _codes(self, "appearance.hue_classes", "hue_classes")
         _codes(self, "appearance.hole_classes", "hole_classes")
         _check(self.weight >= 0, "weight", self.weight, ">= 0")
         _check(
@@ -853,8 +854,8 @@ class Config:
             del detect["appearance"]["transfer"]
         if not self.detect.appearance.ground_classes:  # the inventory alone: older hashes hold
             del detect["appearance"]["ground_classes"]
-        if not self.detect.appearance.vegetation_classes:  # no vegetation: older hashes hold
-            del detect["appearance"]["vegetation_classes"]
+        if not self.detect.appearance.hue_classes:  # no hue check: older hashes hold
+            del detect["appearance"]["hue_classes"]
         if not self.detect.appearance.hole_classes:  # holes near any class: older hashes hold
             del detect["appearance"]["hole_classes"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold

@@ -369,7 +369,7 @@ def test_a_bench_before_a_hedge_is_seen_by_its_hue_and_the_shaded_hedge_is_not()
     ref, classes, image = _street_with_a_hedge()
     valid = np.ones((H, W), bool)
     green = classes == cls.VEGETATION
-    a = appearance_change(image, ref, valid, classes, AppearanceParams(), vegetation=green)
+    a = appearance_change(image, ref, valid, classes, AppearanceParams(), by_hue=green)
     assert a[86:92, 33:47].min() > 0.5
     hedge = green.copy()
     hedge[82:96, 28:52] = False
@@ -378,7 +378,7 @@ def test_a_bench_before_a_hedge_is_seen_by_its_hue_and_the_shaded_hedge_is_not()
     # the brightness term would take the median to 0.32
     assert np.median(a[hedge]) < 0.25
     assert a[~green].max() == 0.0  # the ground is not a checked class here
-    # without the vegetation mask the hedge is not checked at all
+    # without the pixels to check by hue the hedge is not checked at all
     assert not appearance_change(image, ref, valid, classes, AppearanceParams()).any()
 
 
@@ -395,7 +395,7 @@ def test_the_white_balance_is_a_gain_per_channel_without_an_offset():
 
 def test_vegetation_is_checked_only_below_the_camera_and_against_real_colours():
     """fuse_appearance: a level camera looking along the street (local frame z up) checks the
-    hedge it looks down on, not the crown above its height; vegetation_classes () is off."""
+    hedge it looks down on, not the crown above its height; hue_classes () is off."""
     from streetcd.config import DetectParams
     from streetcd.detect.chain import below_camera, fuse_appearance
     from streetcd.detect.surface import ViewSurface
@@ -416,9 +416,34 @@ def test_vegetation_is_checked_only_below_the_camera_and_against_real_colours():
     assert a is not None
     assert a[86:92, 33:47].min() > 0.5  # the bench before the hedge
     assert a[:10].max() == 0.0  # the crown seen from under it is left alone
-    off = dataclasses.replace(params, appearance=AppearanceParams(vegetation_classes=()))
+    off = dataclasses.replace(params, appearance=AppearanceParams(hue_classes=()))
     _, none = fuse_appearance(image, surf, zero, view, off)
     assert none is not None and none.max() == 0.0
     # a cloud without colours gets the intensity check, which asks no vegetation
     _, intensity = fuse_appearance(image, surf, zero, view, params, "intensity")
     assert intensity is not None and intensity[86:92, 33:47].max() == 0.0
+
+
+def test_a_board_before_a_wall_is_seen_by_its_hue_and_a_balconys_shadow_is_not():
+    """The façade is checked by hue as well (``hue_classes`` holds the building role): a cast
+    shadow the scan did not have darkens the wall without changing its hue."""
+    from streetcd.config import DetectParams
+    from streetcd.detect.chain import fuse_appearance
+    from streetcd.detect.surface import ViewSurface
+    from streetcd.types import Intrinsics, Pose, View
+
+    ref, _ = _scene()
+    ref[40:50, 40:60] = ref[40:50, 20:40]  # no board in the old cloud: wall
+    classes = np.full((H, W), cls.BUILDING, np.uint8)
+    image = ref.copy()
+    image[60:80, 10:90] = (ref[60:80, 10:90] * 0.45).astype(np.uint8)  # a balcony's shadow
+    image[86:94, 40:60] = (200, 40, 40)  # a red board before the wall's lower part
+    level = Pose(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]), np.zeros(3))
+    view = View("v", Intrinsics(W, H, 80.0, 80.0, W / 2, H / 2), level)
+    surf = ViewSurface(np.full((H, W), 10.0, np.float32), classes, np.ones((H, W), bool), ref)
+    zero = np.zeros((H, W), np.float32)
+    _, a = fuse_appearance(image, surf, zero, view, DetectParams())
+    assert a is not None
+    assert a[88:92, 43:57].min() > 0.5
+    assert a[62:78, 12:88].max() < 0.2  # k · A far below eq. 7's middle; with brightness 0.22
+    assert a[: H // 2].max() == 0.0  # the upper floors, above the camera, are left alone

@@ -37,12 +37,13 @@ sees them by their geometry. The **ground** is checked as well
 adds to the classes) where the cloud has colours and tells its road from its ground: a bench
 or a bin added on the pavement stands little in front of it, so eq. 5, low-weighted there,
 sees almost nothing (docs/TUNING.md, thirtieth round). The road is not checked: cars come
-and go on it. The **vegetation below the camera's height** is checked by its hue alone
-(``AppearanceParams.vegetation_classes``, the ``vegetation`` pixels of
+and go on it. The **vegetation and the façades below the camera's height** are checked by
+their hue alone (``AppearanceParams.hue_classes``, the ``by_hue`` pixels of
 :func:`appearance_change`; :func:`streetcd.detect.chain.fuse_appearance` picks them), the
 reference white-balanced by a gain per channel (:func:`white_balance_luts`): a bench or a
-board in front of a hedge differs from it in hue, which eq. 5's low weight on vegetation
-hides, while the foliage's own shading differs from the scan's for no change (docs/TUNING.md,
+board in front of a hedge or a wall differs from it in hue, which eq. 5 misses (its low
+weight on vegetation, a wall as dark as the bench), while foliage's shading and a
+balcony's cast shadow differ from the scan's in brightness, for no change (docs/TUNING.md,
 thirty-fifth round). :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before
 the node energy of eq. 7; ``AppearanceParams(enabled=False)`` is the paper's method.
 """
@@ -272,7 +273,7 @@ def appearance_change(
     classes: np.ndarray,
     params: AppearanceParams = _DEFAULTS,
     registration_px: int = 0,
-    vegetation: np.ndarray | None = None,
+    by_hue: np.ndarray | None = None,
 ) -> np.ndarray:
     """Appearance change ``A_p`` (module docstring) of one view.
 
@@ -287,10 +288,11 @@ def appearance_change(
     go, while anything wider keeps its extent: the tolerance eq. 5 has through
     :func:`streetcd.detect.correlate.colour_envelope`.
 
-    vegetation : (H, W) bool or None, pixels of vegetation to check as well (with a surface,
-    outside the footprint): there ``A_p`` is the chromaticity term alone, the reference
-    white-balanced (:func:`white_balance_luts`), not transferred: foliage's shading differs
-    from the scan's, its hue does not, and a bench or a board in front of it differs in hue.
+    by_hue : (H, W) bool or None, pixels to check as well by their hue (with a surface,
+    outside the footprint: vegetation, façades): there ``A_p`` is the chromaticity term
+    alone, the reference white-balanced (:func:`white_balance_luts`), not transferred:
+    shading and cast shadows change brightness, not hue, and a bench or a board in front of
+    a hedge or a wall differs from it in hue.
     """
     close_px = close_width_px(params, valid.shape[1])
     checked = (
@@ -308,17 +310,17 @@ def appearance_change(
     if checked is None:
         checked = valid & in_roles(classes, params.classes)
     out = np.zeros(valid.shape, dtype=np.float32)
-    green = None if vegetation is None else vegetation & valid & ~checked
-    if not valid.any() or not (checked.any() or (green is not None and green.any())):
+    hued = None if by_hue is None else by_hue & valid & ~checked
+    if not valid.any() or not (checked.any() or (hued is not None and hued.any())):
         return out
     if checked.any():
         luts = transfer_luts(reference, image, valid, params.transfer)
         ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
         out[checked] = reference_distance(image[checked], ref, luts, params)
-    if green is not None and green.any():
+    if hued is not None and hued.any():
         hue_only = replace(params, brightness_weight=0.0)
         balance = white_balance_luts(reference, image, valid)
-        out[green] = reference_distance(image[green], reference[green], balance, hue_only)
+        out[hued] = reference_distance(image[hued], reference[hued], balance, hue_only)
     if registration_px > 0:
         square = np.ones((2 * registration_px + 1, 2 * registration_px + 1), np.uint8)
         return np.asarray(cv2.morphologyEx(out, cv2.MORPH_OPEN, square), dtype=np.float32)

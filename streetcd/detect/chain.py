@@ -380,7 +380,7 @@ def fuse_appearance(
     inferred pole is whatever stands upright, and its holes are the rest of it. Without this,
     the real case's twin through the nightly pipeline flagged a view
     (``tests/test_real_pipeline.py::test_the_real_unchanged_twin_reports_nothing``). With
-    real colours, the ``appearance.vegetation_classes`` pixels below the camera
+    real colours, the ``appearance.hue_classes`` pixels below the camera
     (:func:`below_camera`) are checked by their hue as well."""
     if not params.appearance.enabled or surf.colour is None:
         return change, None
@@ -395,11 +395,11 @@ def fuse_appearance(
     else:
         if ground and ap.ground_classes:
             ap = replace(ap, classes=ap.classes + ap.ground_classes)
-        vegetation = None
-        if ap.vegetation_classes:
-            vegetation = in_roles(surf.classes, ap.vegetation_classes) & below_camera(local)
+        by_hue = None
+        if ap.hue_classes:
+            by_hue = in_roles(surf.classes, ap.hue_classes) & below_camera(local)
         appearance = _colour_check_at_cell_scale(
-            image, surf.colour, surf.valid, surf.classes, ap, params, vegetation
+            image, surf.colour, surf.valid, surf.classes, ap, params, by_hue
         )
     return np.maximum(change, np.float32(params.appearance.weight) * appearance), appearance
 
@@ -438,8 +438,9 @@ def _sampled(raster: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarr
 def below_camera(view: View) -> np.ndarray:
     """(H, W) bool: the pixels of ``view`` whose ray points downwards in the local frame (z
     up), i.e. whose points lie below the camera's height, whatever their depth: what a
-    street camera looks down on (the pavement, a hedge), not what it looks up at (a tree's
-    crown, seen from under it where the scanner saw it from the side)."""
+    street camera looks down on (the pavement, a hedge, a ground floor), not what it looks up
+    at (a tree's crown, an upper floor, seen from under them where the scanner saw them from
+    the side)."""
     rays = camera_rays(view.intrinsics)  # (H, W, 2): x/z, y/z in the camera frame
     r = np.asarray(view.pose.R, np.float64)  # world → camera; a ray's world z is (Rᵀ d)_z
     up = rays[..., 0] * np.float32(r[0, 2]) + rays[..., 1] * np.float32(r[1, 2])
@@ -453,11 +454,11 @@ def _colour_check_at_cell_scale(
     classes: np.ndarray,
     ap: AppearanceParams,
     params: DetectParams,
-    vegetation: np.ndarray | None = None,
+    by_hue: np.ndarray | None = None,
 ) -> np.ndarray:
     """The reference-colour check ``A_p`` (H, W) float32 of ``image`` (H, W, 3) uint8 against
     the old cloud's ``colour`` (H, W, 3) uint8 on the surface ``valid`` (H, W) bool with its
-    ``classes`` (H, W) uint8 (and the ``vegetation`` (H, W) bool pixels it checks by hue,
+    ``classes`` (H, W) uint8 (and the ``by_hue`` (H, W) bool pixels it checks by hue alone,
     :func:`streetcd.detect.appearance.appearance_change`), computed where a superpixel cell is about ``CHANGE_CELL_PX``
     wide and upsampled (bilinear), as eq. 5 is (:func:`_raw_change_at_cell_scale`): the graph
     cut sees it through superpixel means, and at 12 MP the footprint's hole fill and the
@@ -470,7 +471,7 @@ def _colour_check_at_cell_scale(
     hs, ws = _cell_shape((h, w), params)
     if (hs, ws) == (h, w):
         radius = registration_radius_px(w, params.correlate)
-        return appearance_change(image, colour, valid, classes, ap, radius, vegetation)
+        return appearance_change(image, colour, valid, classes, ap, radius, by_hue)
     rows, cols = nearest_index(hs, h), nearest_index(ws, w)
     a = appearance_change(
         _sampled(image, rows, cols),
@@ -479,7 +480,7 @@ def _colour_check_at_cell_scale(
         _sampled(classes, rows, cols),
         ap,
         registration_radius_px(ws, params.correlate),
-        None if vegetation is None else _sampled(vegetation, rows, cols),
+        None if by_hue is None else _sampled(by_hue, rows, cols),
     )
     return np.asarray(cv2.resize(a, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
 
