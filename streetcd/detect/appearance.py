@@ -80,10 +80,7 @@ def transfer_luts(
     ``ln(1 + level)`` (:func:`channel_map`). reference, image : (H, W, 3) uint8; valid :
     (H, W) bool. Identity tables when no pixel is valid.
     """
-    k = STAT_STRIDE
-    pick = valid[::k, ::k]
-    if not pick.any():
-        pick, k = valid, 1
+    pick, k = _statistics_grid(valid)
     luts = np.tile(np.arange(256, dtype=np.uint8), (3, 1))
     if not pick.any():
         return luts
@@ -92,6 +89,16 @@ def transfer_luts(
     for c in range(3):
         luts[c] = np.clip(np.round(channel_map(ref[:, c], img[:, c], model)), 0, 255)
     return luts
+
+
+def _statistics_grid(valid: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(pick, k)``: the pixels of ``valid`` on every ``k``-th row and column that colour
+    statistics are taken from, ``k = STAT_STRIDE``, or ``k = 1`` (all of ``valid``) where that
+    grid misses every valid pixel (a thin object in a small view)."""
+    pick = valid[::STAT_STRIDE, ::STAT_STRIDE]
+    if pick.any():
+        return pick, STAT_STRIDE
+    return valid, 1
 
 
 def channel_map(reference: np.ndarray, image: np.ndarray, model: str = "linear") -> np.ndarray:
@@ -128,10 +135,7 @@ def white_balance_luts(reference: np.ndarray, image: np.ndarray, valid: np.ndarr
     gains without an offset, so a dark colour keeps its hue, which the gain and offset of
     :func:`transfer_luts` do not keep (an offset of a few levels turns dark green grey).
     Identity tables when no pixel is valid."""
-    k = STAT_STRIDE
-    pick = valid[::k, ::k]
-    if not pick.any():
-        pick, k = valid, 1
+    pick, k = _statistics_grid(valid)
     levels = np.arange(256, dtype=np.float64)
     if not pick.any():
         return np.tile(levels.astype(np.uint8), (3, 1))

@@ -441,10 +441,17 @@ def below_camera(view: View) -> np.ndarray:
     street camera looks down on (the pavement, a hedge, a ground floor), not what it looks up
     at (a tree's crown, an upper floor, seen from under them where the scanner saw them from
     the side)."""
-    rays = camera_rays(view.intrinsics)  # (H, W, 2): x/z, y/z in the camera frame
+    intr = view.intrinsics
     r = np.asarray(view.pose.R, np.float64)  # world → camera; a ray's world z is (Rᵀ d)_z
-    up = rays[..., 0] * np.float32(r[0, 2]) + rays[..., 1] * np.float32(r[1, 2])
-    return np.asarray(up + np.float32(r[2, 2]) < 0)
+    r02, r12, r22 = (np.float32(r[i, 2]) for i in range(3))
+    if intr.has_distortion:
+        rays = camera_rays(intr)  # (H, W, 2): x/z, y/z in the camera frame
+        return np.asarray(rays[..., 0] * r02 + rays[..., 1] * r12 + r22 < 0)
+    # without distortion x/z depends on the column and y/z on the row alone: no (H, W, 2)
+    # raster of rays (at 12 MP it took 0.19 s); the same float32 values as camera_rays'
+    x = ((np.arange(intr.width, dtype=np.float32) - intr.cx) / intr.fx).astype(np.float32)
+    y = ((np.arange(intr.height, dtype=np.float32) - intr.cy) / intr.fy).astype(np.float32)
+    return np.asarray(x[None, :] * r02 + (y * r12)[:, None] + r22 < 0)
 
 
 def _colour_check_at_cell_scale(
