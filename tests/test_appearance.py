@@ -409,6 +409,11 @@ def test_vegetation_is_checked_only_below_the_camera_and_against_real_colours():
     view = View("v", Intrinsics(W, H, 80.0, 80.0, W / 2, H / 2), level)
     below = below_camera(view)
     assert below[H // 2 + 1 :].all() and not below[: H // 2].any()
+    # a lens with distortion reads the undistorted rays: the horizon stays at the middle row
+    # (whose pixel centres lie on it, either side by rounding)
+    barrel = Intrinsics(W, H, 80.0, 80.0, W / 2, H / 2, dist=(-0.3, 0.1, 0.0, 0.0, 0.0))
+    bent = below_camera(View("d", barrel, level))
+    assert bent[H // 2 + 1 :].all() and not bent[: H // 2].any()
     surf = ViewSurface(np.full((H, W), 10.0, np.float32), classes, np.ones((H, W), bool), ref)
     zero = np.zeros((H, W), np.float32)
     params = DetectParams()
