@@ -47,6 +47,7 @@ from streetcd.detect.correlate import (
     envelope_levels,
     hole_depths,
     pair_lut,
+    pinhole_axes,
     raw_change,
     registration_radius_px,
     stretch_lut,
@@ -449,8 +450,7 @@ def below_camera(view: View) -> np.ndarray:
         return np.asarray(rays[..., 0] * r02 + rays[..., 1] * r12 + r22 < 0)
     # without distortion x/z depends on the column and y/z on the row alone: no (H, W, 2)
     # raster of rays (at 12 MP it took 0.19 s); the same float32 values as camera_rays'
-    x = ((np.arange(intr.width, dtype=np.float32) - intr.cx) / intr.fx).astype(np.float32)
-    y = ((np.arange(intr.height, dtype=np.float32) - intr.cy) / intr.fy).astype(np.float32)
+    x, y = pinhole_axes(intr)
     return np.asarray(x[None, :] * r02 + (y * r12)[:, None] + r22 < 0)
 
 
@@ -466,9 +466,9 @@ def _colour_check_at_cell_scale(
     """The reference-colour check ``A_p`` (H, W) float32 of ``image`` (H, W, 3) uint8 against
     the old cloud's ``colour`` (H, W, 3) uint8 on the surface ``valid`` (H, W) bool with its
     ``classes`` (H, W) uint8 (and the ``by_hue`` (H, W) bool pixels it checks by hue alone,
-    :func:`streetcd.detect.appearance.appearance_change`), computed where a superpixel cell is about ``CHANGE_CELL_PX``
-    wide and upsampled (bilinear), as eq. 5 is (:func:`_raw_change_at_cell_scale`): the graph
-    cut sees it through superpixel means, and at 12 MP the footprint's hole fill and the
+    :func:`streetcd.detect.appearance.appearance_change`), computed where a superpixel cell
+    is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear), as eq. 5 is
+    (:func:`_raw_change_at_cell_scale`): the graph cut sees it through superpixel means, and at 12 MP the footprint's hole fill and the
     colour distances over every pixel took ~0.27 s (docs/BENCHMARKS.md). Up to ~2 MP it runs
     at full size, the same to the bit. The image and the surface's rasters are sampled at the
     same pixels (nearest): the check compares the two pixel by pixel, and an image averaged

@@ -383,6 +383,15 @@ def _fill_holes(depth, minima, block):  # pragma: no cover - compiled
     return out
 
 
+def pinhole_axes(intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """(W,) and (H,) float32: x/z of every column's and y/z of every row's pixel centres of a
+    camera without distortion, whose normalised coordinates separate so."""
+    w, h = intrinsics.width, intrinsics.height
+    x = ((np.arange(w, dtype=np.float32) - intrinsics.cx) / intrinsics.fx).astype(np.float32)
+    y = ((np.arange(h, dtype=np.float32) - intrinsics.cy) / intrinsics.fy).astype(np.float32)
+    return x, y
+
+
 def camera_rays(intrinsics: Intrinsics) -> np.ndarray:
     """(H, W, 2) float32 undistorted normalised coordinates (x/z, y/z) of every pixel centre.
 
@@ -393,8 +402,7 @@ def camera_rays(intrinsics: Intrinsics) -> np.ndarray:
     """
     h, w = intrinsics.height, intrinsics.width
     if not intrinsics.has_distortion:
-        x = ((np.arange(w, dtype=np.float32) - intrinsics.cx) / intrinsics.fx).astype(np.float32)
-        y = ((np.arange(h, dtype=np.float32) - intrinsics.cy) / intrinsics.fy).astype(np.float32)
+        x, y = pinhole_axes(intrinsics)
         return np.stack(np.broadcast_arrays(x[None, :], y[:, None]), axis=-1)
     s = _RAY_GRID_STEP_PX
     gu = np.arange(0, max(w - 1, 1) + s, s, dtype=np.float64)  # ≥ 2 samples, last ≥ W − 1
