@@ -371,6 +371,12 @@ class AppearanceParams:
     # check took for the pole (docs/TUNING.md, thirty-second round)
     hole_classes: tuple[int, ...] = (GROUND, SIGN, RAILING, FURNITURE)
     dark_level: float = 24.0  # ε, added to R+G+B (0–765) so dark pixels have no chroma noise
+    # our addition (issue 16): ε spread over the channels, ε/3 each, so that a dark colour's
+    # chromaticity tends to grey, not to black: the shaded side of a pole that the scanner
+    # saw and the lit side a camera on the sidewalk sees differ in brightness, not in chroma
+    # (docs/TUNING.md, thirty-sixth round); False: ε added to the sum (black is a colour).
+    # The hue_classes' check, without a brightness term, keeps ε on the sum either way
+    dark_grey: bool = True
     chroma_weight: float = 2.0  # w_c, weight of the L1 chromaticity difference (0–2)
     brightness_weight: float = 0.3  # w_b, weight of the log-brightness difference ...
     brightness_tolerance: float = 0.5  # ... beyond this (ln units: shadows, exposure)
@@ -856,6 +862,8 @@ class Config:
             del detect["appearance"]["ground_classes"]
         if not self.detect.appearance.hue_classes:  # no hue check: older hashes hold
             del detect["appearance"]["hue_classes"]
+        if not self.detect.appearance.dark_grey:  # dark tends to black: older hashes hold
+            del detect["appearance"]["dark_grey"]
         if not self.detect.appearance.hole_classes:  # holes near any class: older hashes hold
             del detect["appearance"]["hole_classes"]
         if not self.detect.appearance.intensity:  # no intensity check: older hashes hold

@@ -80,6 +80,24 @@ def test_distance_is_zero_for_the_same_colour_and_small_for_a_shadow():
     assert colour_distance(wall, board, p)[0] > 0.5
 
 
+def test_a_dark_colour_tends_to_grey_so_a_shaded_side_is_no_change_of_hue():
+    # the scanner saw a grey pole's side in its shade; a camera on the sidewalk sees it lit
+    shaded = np.array([[12, 12, 13]], np.uint8)
+    lit = np.array([[140, 140, 150]], np.uint8)
+    dark_green = np.array([[10, 40, 12]], np.uint8)  # a dark hedge or railing still has a hue
+    p = AppearanceParams(brightness_weight=0.0)
+    assert colour_distance(lit, shaded, p)[0] < 0.05
+    assert colour_distance(lit, dark_green, p)[0] > 0.5
+    # ε on the sum instead (before): black is a colour of its own, far from every grey
+    black = dataclasses.replace(p, dark_grey=False)
+    assert colour_distance(lit, shaded, black)[0] > 0.5
+    # the brightness term is the same either way: dark against lit still counts by brightness
+    bright = AppearanceParams(chroma_weight=0.0, brightness_weight=0.3)
+    grey_way = colour_distance(lit, shaded, bright)[0]
+    assert grey_way > 0.4
+    assert grey_way == colour_distance(lit, shaded, dataclasses.replace(bright, dark_grey=False))[0]
+
+
 def test_a_removed_board_is_seen_only_on_the_inventory_class():
     ref, classes = _scene()
     image = ref.copy()
@@ -443,6 +461,7 @@ def test_a_board_before_a_wall_is_seen_by_its_hue_and_a_balconys_shadow_is_not()
     image = ref.copy()
     image[60:80, 10:90] = (ref[60:80, 10:90] * 0.45).astype(np.uint8)  # a balcony's shadow
     image[86:94, 40:60] = (200, 40, 40)  # a red board before the wall's lower part
+    image[86:94, 70:90] = (14, 14, 15)  # a black bench before it too
     level = Pose(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]), np.zeros(3))
     view = View("v", Intrinsics(W, H, 80.0, 80.0, W / 2, H / 2), level)
     surf = ViewSurface(np.full((H, W), 10.0, np.float32), classes, np.ones((H, W), bool), ref)
@@ -452,3 +471,6 @@ def test_a_board_before_a_wall_is_seen_by_its_hue_and_a_balconys_shadow_is_not()
     assert a[88:92, 43:57].min() > 0.5
     assert a[62:78, 12:88].max() < 0.2  # k · A far below eq. 7's middle; with brightness 0.22
     assert a[: H // 2].max() == 0.0  # the upper floors, above the camera, are left alone
+    # without a brightness term the hue check keeps darkness a colour (appearance.dark_grey
+    # is the inventory's): a black bench differs from the lit wall in nothing else
+    assert a[88:92, 73:87].min() > 0.5

@@ -138,7 +138,9 @@ def test_one_config_file_sets_the_detector_and_the_run(tmp_path):
 def test_the_results_hash_covers_exactly_what_changes_results():
     base = Config()
     # pinned: a change of this number re-detects every view of every index on the next night,
-    # so it must come from a change of the results (2026-11-30, the thirty-fifth round: the
+    # so it must come from a change of the results (2026-11-30, the thirty-sixth round: a
+    # dark colour's chromaticity tends to grey, appearance.dark_grey; 602513b9b3dede40
+    # before, from the thirty-fifth round: the
     # hue of the vegetation and the façades below the camera checked against the cloud's
     # colours; 6b2eed8cd84feba7 for a commit with the vegetation alone, never a night's;
     # 2ff0c80dc14ddbcc before, from the thirty-second round: the
@@ -167,10 +169,13 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # railing's foot; b391d095e4e6e3b2 before that, from the sixteenth round: the rules of the
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
-    assert base.results_hash() == "602513b9b3dede40"
-    # the hue check off: the thirty-second round's hash holds; every hash below was
-    # made before it existed and is built without it
-    no_hue = AppearanceParams(hue_classes=())
+    assert base.results_hash() == "13478e666017c0eb"
+    # dark towards black as before: the thirty-fifth round's hash holds
+    to_black = AppearanceParams(dark_grey=False)
+    assert Config(DetectParams(appearance=to_black)).results_hash() == "602513b9b3dede40"
+    # the hue check off too: the thirty-second round's hash holds; every hash below was
+    # made before either existed and is built without them
+    no_hue = AppearanceParams(hue_classes=(), dark_grey=False)
     assert Config(DetectParams(appearance=no_hue)).results_hash() == "2ff0c80dc14ddbcc"
     # the thirty-third round's floor for coloured clouds, a switch left off: on, it is hashed
     floored_colours = TextureParams(see_through_colour_blur_px=1.5)
@@ -182,7 +187,7 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # each of the thirty-second round's two changes off alone, then both: the thirty-first
     # round's hash holds
     near_off = TextureParams(near_layer_m=0.0, see_through_colour_blur_px=0.0)
-    any_holes = AppearanceParams(hole_classes=(), hue_classes=())
+    any_holes = AppearanceParams(hole_classes=(), hue_classes=(), dark_grey=False)
     assert (
         Config(DetectParams(texture=near_off, appearance=no_hue)).results_hash()
         == "57b76b36ebbe1c97"
@@ -220,7 +225,7 @@ def test_the_results_hash_covers_exactly_what_changes_results():
 
     # the ground's colours not checked (the thirtieth round's appearance.ground_classes off):
     # the twenty-eighth round's hash holds, and with it every earlier one below
-    inventory = AppearanceParams(ground_classes=(), hue_classes=())
+    inventory = AppearanceParams(ground_classes=(), hue_classes=(), dark_grey=False)
     assert Config(unfilled_detect(appearance=inventory)).results_hash() == "50c1033411893261"
     # the regions not located: the twenty-sixth round's hash holds
     unlocated = LocateParams(enabled=False)

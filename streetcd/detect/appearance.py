@@ -22,9 +22,12 @@ compared after
    ``ln(1 + level)`` instead, an exposure and a gamma): exposure, white balance and the
    scanner camera's response cancel;
 2. **an illumination-tolerant distance**: the L1 difference of chromaticities
-   ``rgb / (R + G + B + ε)`` (0–2), plus the log-brightness difference beyond a tolerance,
-   so cast shadows (darker, same hue) that the scan did not have count little:
-   ``A_p = min(1, w_c · ‖ĉ_I − ĉ_M‖₁ + w_b · max(0, |ln(ΣI / ΣM)| − t_b))``.
+   ``(rgb + ε/3) / (R + G + B + ε)`` (0–2), plus the log-brightness difference beyond a
+   tolerance, so cast shadows (darker, same hue) that the scan did not have count little:
+   ``A_p = min(1, w_c · ‖ĉ_I − ĉ_M‖₁ + w_b · max(0, |ln(ΣI / ΣM)| − t_b))``. The ε keeps
+   the chromaticity of dark pixels from noise by drawing it towards grey
+   (``AppearanceParams.dark_grey``; ``rgb / (R + G + B + ε)`` before, which drew it towards
+   0, so that a dark colour differed from every lit one in chroma).
 
 It is checked on the **inventory classes** (poles, signs, railings, furniture), over their
 footprint with see-through gaps closed (a railing's bars are a few pixels wide; the hedge
@@ -44,7 +47,9 @@ reference white-balanced by a gain per channel (:func:`white_balance_luts`): a b
 board in front of a hedge or a wall differs from it in hue, which eq. 5 misses (its low
 weight on vegetation, a wall as dark as the bench), while foliage's shading and a
 balcony's cast shadow differ from the scan's in brightness, for no change (docs/TUNING.md,
-thirty-fifth round). :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before
+thirty-fifth round). Without a brightness term there, a dark colour keeps ε on the sum, its
+chromaticity drawn towards 0: a dark bench before a lit plinth differs from it in nothing
+else (thirty-sixth round). :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before
 the node energy of eq. 7; ``AppearanceParams(enabled=False)`` is the paper's method.
 """
 
@@ -153,8 +158,13 @@ def colour_distance(
     (H, W, 3) uint8 (reference already transferred). Returns (H, W) float32 in [0, 1]."""
     i = image.astype(np.float32)
     m = reference.astype(np.float32)
-    si = i.sum(axis=-1) + np.float32(params.dark_level)
-    sm = m.sum(axis=-1) + np.float32(params.dark_level)
+    if params.dark_grey:  # ε/3 on each channel: a dark colour's chromaticity tends to grey
+        i += np.float32(params.dark_level / 3)
+        m += np.float32(params.dark_level / 3)
+        si, sm = i.sum(axis=-1), m.sum(axis=-1)
+    else:  # ε on the sum: it tends to 0, a colour of its own that differs from grey
+        si = i.sum(axis=-1) + np.float32(params.dark_level)
+        sm = m.sum(axis=-1) + np.float32(params.dark_level)
     chroma = np.abs(i / si[..., None] - m / sm[..., None]).sum(axis=-1)
     bright = np.maximum(np.abs(np.log(si / sm)) - np.float32(params.brightness_tolerance), 0)
     a = params.chroma_weight * chroma + params.brightness_weight * bright
@@ -322,7 +332,9 @@ def appearance_change(
         ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
         out[checked] = reference_distance(image[checked], ref, luts, params)
     if hued is not None and hued.any():
-        hue_only = replace(params, brightness_weight=0.0)
+        # no brightness term here, so darkness stays a colour of its own (ε on the sum): a
+        # dark bench before a lit plinth differs from it in nothing else
+        hue_only = replace(params, brightness_weight=0.0, dark_grey=False)
         balance = white_balance_luts(reference, image, valid)
         out[hued] = reference_distance(image[hued], reference[hued], balance, hue_only)
     if registration_px > 0:
