@@ -158,13 +158,11 @@ def colour_distance(
     (H, W, 3) uint8 (reference already transferred). Returns (H, W) float32 in [0, 1]."""
     i = image.astype(np.float32)
     m = reference.astype(np.float32)
+    si = i.sum(axis=-1) + np.float32(params.dark_level)  # the brightness, either way
+    sm = m.sum(axis=-1) + np.float32(params.dark_level)
     if params.dark_grey:  # ε/3 on each channel: a dark colour's chromaticity tends to grey
-        i += np.float32(params.dark_level / 3)
+        i += np.float32(params.dark_level / 3)  # (without: it tends to 0, a colour of its own)
         m += np.float32(params.dark_level / 3)
-        si, sm = i.sum(axis=-1), m.sum(axis=-1)
-    else:  # ε on the sum: it tends to 0, a colour of its own that differs from grey
-        si = i.sum(axis=-1) + np.float32(params.dark_level)
-        sm = m.sum(axis=-1) + np.float32(params.dark_level)
     chroma = np.abs(i / si[..., None] - m / sm[..., None]).sum(axis=-1)
     bright = np.maximum(np.abs(np.log(si / sm)) - np.float32(params.brightness_tolerance), 0)
     a = params.chroma_weight * chroma + params.brightness_weight * bright
