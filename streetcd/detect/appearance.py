@@ -49,8 +49,9 @@ weight on vegetation, a wall as dark as the bench), while foliage's shading and 
 balcony's cast shadow differ from the scan's in brightness, for no change (docs/TUNING.md,
 thirty-fifth round). Without a brightness term there, a dark colour keeps ε on the sum, its
 chromaticity drawn towards 0: a dark bench before a lit plinth differs from it in nothing
-else (thirty-sixth round). :func:`streetcd.detect.chain.detect_view` fuses ``max(C_p, k · A_p)`` before
-the node energy of eq. 7; ``AppearanceParams(enabled=False)`` is the paper's method.
+else (thirty-sixth round). :func:`streetcd.detect.chain.detect_view` fuses
+``max(C_p, k · A_p)`` before the node energy of eq. 7; ``AppearanceParams(enabled=False)``
+is the paper's method.
 """
 
 from __future__ import annotations

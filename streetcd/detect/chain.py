@@ -468,8 +468,9 @@ def _colour_check_at_cell_scale(
     ``classes`` (H, W) uint8 (and the ``by_hue`` (H, W) bool pixels it checks by hue alone,
     :func:`streetcd.detect.appearance.appearance_change`), computed where a superpixel cell
     is about ``CHANGE_CELL_PX`` wide and upsampled (bilinear), as eq. 5 is
-    (:func:`_raw_change_at_cell_scale`): the graph cut sees it through superpixel means, and at 12 MP the footprint's hole fill and the
-    colour distances over every pixel took ~0.27 s (docs/BENCHMARKS.md). Up to ~2 MP it runs
+    (:func:`_raw_change_at_cell_scale`): the graph cut sees it through superpixel means, and
+    at 12 MP the footprint's hole fill and the colour distances over every pixel took ~0.27 s
+    (docs/BENCHMARKS.md). Up to ~2 MP it runs
     at full size, the same to the bit. The image and the surface's rasters are sampled at the
     same pixels (nearest): the check compares the two pixel by pixel, and an image averaged
     by area against reference colours sampled would differ in contrast, which the colour
