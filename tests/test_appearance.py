@@ -16,6 +16,7 @@ from streetcd.detect.appearance import (
     colour_distance,
     fill_nearest,
     footprint,
+    reference_distance,
     transfer_colours,
     white_balance_luts,
 )
@@ -96,6 +97,22 @@ def test_a_dark_colour_tends_to_grey_so_a_shaded_side_is_no_change_of_hue():
     grey_way = colour_distance(lit, shaded, bright)[0]
     assert grey_way > 0.4
     assert grey_way == colour_distance(lit, shaded, dataclasses.replace(bright, dark_grey=False))[0]
+
+
+def test_reference_distance_moves_each_channel_through_its_own_table():
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (500, 3), dtype=np.uint8)
+    reference = rng.integers(0, 256, (500, 3), dtype=np.uint8)
+    levels = np.arange(256)
+    luts = np.stack([255 - levels, levels // 2, np.minimum(levels * 2, 255)]).astype(np.uint8)
+    mapped = np.stack([luts[c][reference[:, c]] for c in range(3)], axis=-1)
+    p = AppearanceParams()
+    got = reference_distance(image, reference, luts, p)
+    assert got.dtype == np.float32 and got.shape == (500,)
+    assert np.array_equal(got, colour_distance(image, mapped, p))
+    assert not np.array_equal(got, colour_distance(image, reference, p))
+    nothing = np.zeros((0, 3), np.uint8)
+    assert reference_distance(nothing, nothing, luts, p).shape == (0,)
 
 
 def test_a_removed_board_is_seen_only_on_the_inventory_class():

@@ -94,6 +94,32 @@ def test_best_ncc_is_the_best_local_ncc_over_the_shifts():
     assert np.median(best[textured]) > 0.95
 
 
+@pytest.mark.parametrize(("window", "shape"), [(4, (40, 50)), (8, (30, 6)), (7, (5, 60))])
+def test_best_ncc_matches_local_ncc_for_even_windows_and_arrays_smaller_than_a_window(
+    window, shape
+):
+    # the window sums are swept along rows and columns as OpenCV's box filter anchors them:
+    # an even window has one pixel more before its centre than after it
+    rng = np.random.default_rng(window)
+    a = rng.normal(100, 30, shape).astype(np.float32)
+    b = (a + rng.normal(0, 10, shape)).astype(np.float32)
+    valid = rng.random(shape) < 0.9
+    params = TextureParams(window_px=window, min_std=2.0)
+    best, textured = _best_ncc_in(a, b, valid, params, 1, (0, 1))
+    want = np.full(shape, -1.0, np.float32)
+    want_textured = np.zeros(shape, bool)
+    for dy in range(-1, 2):
+        for dx in range(0, 3):
+            b_s, v_s = _shifted(b, dy, dx, 0.0), _shifted(valid, dy, dx, False)
+            ncc, t = local_ncc(a, b_s, v_s & valid, window, 2.0)
+            want = np.maximum(want, np.where(t, ncc, -1.0))
+            want_textured |= t
+    want[~want_textured] = 0.0
+    assert want_textured.any()
+    assert (textured == want_textured).all()
+    assert np.abs(best - want).max() < 1e-4
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_best_ncc_over_the_valid_pixels_box_is_the_whole_arrays_to_the_bit(seed):
     rng = np.random.default_rng(seed)

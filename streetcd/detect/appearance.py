@@ -159,12 +159,17 @@ def colour_distance(
     (H, W, 3) uint8 (reference already transferred). Returns (H, W) float32 in [0, 1]."""
     i = image.astype(np.float32)
     m = reference.astype(np.float32)
-    si = i.sum(axis=-1) + np.float32(params.dark_level)  # the brightness, either way
-    sm = m.sum(axis=-1) + np.float32(params.dark_level)
+    # channels added one by one, not summed over the last axis: the same float32 sums,
+    # without numpy's slow reduction over an axis of three (a third of the check's time)
+    si = i[..., 0] + i[..., 1] + i[..., 2] + np.float32(params.dark_level)  # the brightness
+    sm = m[..., 0] + m[..., 1] + m[..., 2] + np.float32(params.dark_level)  # either way
     if params.dark_grey:  # ε/3 on each channel: a dark colour's chromaticity tends to grey
         i += np.float32(params.dark_level / 3)  # (without: it tends to 0, a colour of its own)
         m += np.float32(params.dark_level / 3)
-    chroma = np.abs(i / si[..., None] - m / sm[..., None]).sum(axis=-1)
+    gap = i / si[..., None]
+    gap -= m / sm[..., None]
+    np.abs(gap, out=gap)
+    chroma = gap[..., 0] + gap[..., 1] + gap[..., 2]
     bright = np.maximum(np.abs(np.log(si / sm)) - np.float32(params.brightness_tolerance), 0)
     a = params.chroma_weight * chroma + params.brightness_weight * bright
     return np.clip(a, 0.0, 1.0).astype(np.float32)
@@ -178,8 +183,12 @@ def reference_distance(
 ) -> np.ndarray:
     """:func:`colour_distance` of image colours (N, 3) uint8 from reference colours (N, 3)
     uint8 moved through the transfer tables ``luts`` (3, 256) of :func:`transfer_luts`."""
-    mapped = np.stack([luts[c][reference_px[:, c]] for c in range(3)], axis=-1)
-    return colour_distance(image_px, mapped, params)
+    if len(reference_px) == 0:
+        return np.zeros(0, np.float32)
+    # one OpenCV look-up through the three tables at once (luts[c][reference_px[:, c]])
+    tables = np.ascontiguousarray(np.asarray(luts, np.uint8).T).reshape(256, 1, 3)
+    mapped = cv2.LUT(np.ascontiguousarray(reference_px, np.uint8).reshape(-1, 1, 3), tables)
+    return colour_distance(image_px, mapped.reshape(-1, 3), params)
 
 
 def footprint(

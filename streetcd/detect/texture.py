@@ -691,80 +691,127 @@ def _best_ncc_in(
     radius: int,
     offset: tuple[int, int],
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_best_ncc`'s per-shift passes over the whole arrays given. Per shift, one numba
-    pass writes the six products whose window sums the NCC needs (1, a, a², b, b², ab over
-    the pixels valid in both), one six-channel box filter sums them, and a second pass keeps
-    the best NCC: the same numbers as :func:`local_ncc` shift by shift (up to float32
-    rounding), without its dozen full-size temporaries."""
+    """:func:`_best_ncc`'s per-shift passes over the whole arrays given: one numba pass per
+    shift (:func:`_best_over_shifts`) sums the six products the NCC needs (1, a, a², b, b², ab
+    over the pixels valid in both) over each window and keeps the best NCC. The same numbers
+    as :func:`local_ncc` shift by shift (up to float32 rounding), without its dozen full-size
+    temporaries, and to the bit those of the products, OpenCV box filters and NCC passes it
+    replaced at half their time (docs/BENCHMARKS.md)."""
     a = np.ascontiguousarray(a, np.float32)
     b = np.ascontiguousarray(b, np.float32)
     valid = np.ascontiguousarray(valid, np.bool_)
     best = np.full(a.shape, -1.0, np.float32)
     any_textured = np.zeros(a.shape, np.bool_)
-    products = np.empty((6, *a.shape), np.float32)
-    sums = np.empty_like(products)
     k = int(params.window_px)
     enough = np.float32(0.5 * k * k)
     floor = np.float32(params.min_std * params.min_std)
-    oy, ox = offset
-    for dy in range(oy - radius, oy + radius + 1):
-        for dx in range(ox - radius, ox + radius + 1):
-            _products(a, b, valid, dy, dx, products)
-            for c in range(6):  # six planes: one plane at a time is twice as fast in OpenCV
-                cv2.boxFilter(
-                    products[c],
-                    cv2.CV_32F,
-                    (k, k),
-                    sums[c],
-                    normalize=False,
-                    borderType=cv2.BORDER_CONSTANT,
-                )
-            _keep_best(sums, valid, dy, dx, enough, floor, best, any_textured)
+    _best_over_shifts(
+        a, b, valid, offset[0], offset[1], radius, k, enough, floor, best, any_textured
+    )
     best[~any_textured] = 0.0
     return best, any_textured
 
 
 @numba.njit(cache=True, nogil=True)
-def _products(a, b, valid, dy, dx, out):  # pragma: no cover - numba
-    """out[y, x] = (1, a, a², b', b'², a·b') with b' = b[y − dy, x − dx], where both pixels are
-    valid, else zeros. a, b (H, W) float32, valid (H, W) bool, out (6, H, W) float32."""
+def _best_over_shifts(
+    a, b, valid, oy, ox, radius, k, enough, floor, best, any_textured
+):  # pragma: no cover - numba
+    """For every shift (dy, dx) within ``radius`` (a square) of (oy, ox): the NCC of
+    :func:`local_ncc` over ``k`` × ``k`` windows between ``a`` and b' = b[y − dy, x − dx],
+    over the pixels where both are valid; ``best`` (H, W) float32 keeps the largest where
+    textured (at least ``enough`` valid pixels, both variances ≥ ``floor``), ``any_textured``
+    (H, W) bool where any shift is. a, b (H, W) float32, valid (H, W) bool.
+
+    The window sums run as a box filter does, with the array's zero border: per row of the
+    output, each column's sum over the window's rows is updated by the row entering and the
+    row leaving (:func:`_add_row_products`), then swept along the row. Sums are in float64,
+    as OpenCV's box filter keeps them, and read as float32, as it returns them."""
     h, w = a.shape
-    for y in range(h):
-        for x in range(w):
-            ys, xs = y - dy, x - dx
-            if valid[y, x] and 0 <= ys < h and 0 <= xs < w and valid[ys, xs]:
-                av, bv = a[y, x], b[ys, xs]
-                out[0, y, x] = 1.0
-                out[1, y, x] = av
-                out[2, y, x] = av * av
-                out[3, y, x] = bv
-                out[4, y, x] = bv * bv
-                out[5, y, x] = av * bv
-            else:
-                for c in range(6):
-                    out[c, y, x] = 0.0
+    before = k // 2  # rows (columns) of the window before its pixel, as OpenCV anchors it
+    after = k - 1 - before
+    columns = np.zeros((6, w), np.float64)
+    for dy in range(oy - radius, oy + radius + 1):
+        for dx in range(ox - radius, ox + radius + 1):
+            columns[:] = 0.0
+            for y in range(min(after, h)):
+                _add_row_products(a, b, valid, dy, dx, y, 1.0, columns)
+            for y in range(h):
+                if y + after < h:
+                    _add_row_products(a, b, valid, dy, dx, y + after, 1.0, columns)
+                if y - before - 1 >= 0:
+                    _add_row_products(a, b, valid, dy, dx, y - before - 1, -1.0, columns)
+                _keep_best_in_row(
+                    columns, valid, y, dy, dx, before, after, enough, floor, best, any_textured
+                )
 
 
-@numba.njit(cache=True, nogil=True)
-def _keep_best(sums, valid, dy, dx, enough, floor, best, any_textured):  # pragma: no cover
-    """The NCC of :func:`local_ncc` from the window sums ``sums`` (6, H, W) of
-    :func:`_products`; ``best`` (H, W) float32 keeps the largest where textured."""
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_row_products(a, b, valid, dy, dx, y, sign, columns):  # pragma: no cover - numba
+    """Add ``sign`` × (1, a, a², b', b'², a·b') of row ``y`` (b' = b[y − dy, x − dx]) to
+    ``columns`` (6, W) float64, where both pixels are valid."""
+    h, w = a.shape
+    ys = y - dy
+    if ys < 0 or ys >= h:
+        return
+    for x in range(w):
+        xs = x - dx
+        if valid[y, x] and 0 <= xs < w and valid[ys, xs]:
+            av, bv = a[y, x], b[ys, xs]
+            columns[0, x] += sign
+            columns[1, x] += sign * av
+            columns[2, x] += sign * (av * av)
+            columns[3, x] += sign * bv
+            columns[4, x] += sign * (bv * bv)
+            columns[5, x] += sign * (av * bv)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _keep_best_in_row(
+    columns, valid, y, dy, dx, before, after, enough, floor, best, any_textured
+):  # pragma: no cover - numba
+    """Row ``y`` of :func:`_best_over_shifts`: the column sums ``columns`` (6, W) swept into
+    window sums (scalars: six arrays would stay in memory), and each pixel valid in both
+    images given the NCC of its window."""
     h, w = best.shape
-    for y in range(h):
-        for x in range(w):
-            ys, xs = y - dy, x - dx
-            if not (valid[y, x] and 0 <= ys < h and 0 <= xs < w and valid[ys, xs]):
-                continue
-            n = sums[0, y, x]
-            if n < enough:
-                continue
-            ma, mb = sums[1, y, x] / n, sums[3, y, x] / n
-            var_a = max(sums[2, y, x] / n - ma * ma, 0.0)
-            var_b = max(sums[4, y, x] / n - mb * mb, 0.0)
-            if var_a < floor or var_b < floor:
-                continue
-            ncc = (sums[5, y, x] / n - ma * mb) / np.sqrt(var_a * var_b)
-            ncc = min(max(ncc, -1.0), 1.0)
-            any_textured[y, x] = True
-            if ncc > best[y, x]:
-                best[y, x] = ncc
+    ys = y - dy
+    s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+    for x in range(min(after, w)):
+        s0 += columns[0, x]
+        s1 += columns[1, x]
+        s2 += columns[2, x]
+        s3 += columns[3, x]
+        s4 += columns[4, x]
+        s5 += columns[5, x]
+    for x in range(w):
+        if x + after < w:
+            xa = x + after
+            s0 += columns[0, xa]
+            s1 += columns[1, xa]
+            s2 += columns[2, xa]
+            s3 += columns[3, xa]
+            s4 += columns[4, xa]
+            s5 += columns[5, xa]
+        if x - before - 1 >= 0:
+            xb = x - before - 1
+            s0 -= columns[0, xb]
+            s1 -= columns[1, xb]
+            s2 -= columns[2, xb]
+            s3 -= columns[3, xb]
+            s4 -= columns[4, xb]
+            s5 -= columns[5, xb]
+        xs = x - dx
+        if not (valid[y, x] and 0 <= ys < h and 0 <= xs < w and valid[ys, xs]):
+            continue
+        n = np.float32(s0)
+        if n < enough:
+            continue
+        ma, mb = np.float32(s1) / n, np.float32(s3) / n
+        var_a = max(np.float32(s2) / n - ma * ma, 0.0)
+        var_b = max(np.float32(s4) / n - mb * mb, 0.0)
+        if var_a < floor or var_b < floor:
+            continue
+        ncc = (np.float32(s5) / n - ma * mb) / np.sqrt(var_a * var_b)
+        ncc = min(max(ncc, -1.0), 1.0)
+        any_textured[y, x] = True
+        if ncc > best[y, x]:
+            best[y, x] = ncc
