@@ -126,6 +126,30 @@ def test_a_removed_board_is_seen_only_on_the_inventory_class():
     assert a[~board].max() == 0.0
 
 
+def test_the_stored_colour_as_well_keeps_a_dark_railing_the_transfer_made_cyan():
+    # the scan's red levels spread half as wide as the photograph's: the transfer's gain on
+    # red is 2.3, and its offset takes the railing's dark red level (33) to 0
+    ref = np.zeros((H, W, 3), np.uint8)
+    ref[..., 0] = np.where(np.arange(W) % 2 == 0, 100, 200)[None, :]
+    ref[..., 1:] = 120
+    image = ref.copy()
+    image[..., 0] = np.where(np.arange(W) % 2 == 0, 20, 255)[None, :]
+    classes = np.full((H, W), cls.BUILDING, np.uint8)
+    classes[40:50, 10:30] = classes[40:50, 60:80] = cls.RAILING
+    ref[40:50, 10:30] = ref[40:50, 60:80] = (33, 33, 35)  # a dark grey railing in the scan
+    image[40:50, 10:30] = (30, 31, 34)  # still there
+    image[40:50, 60:80] = (40, 150, 40)  # a hedge where the other stood
+    valid = np.ones((H, W), bool)
+    kept, hedge = np.zeros((H, W), bool), np.zeros((H, W), bool)
+    kept[40:50, 10:30], hedge[40:50, 60:80] = True, True
+    transferred = appearance_change(image, ref, valid, classes, AppearanceParams(gap_px=0))
+    both = AppearanceParams(gap_px=0, raw_reference=True)
+    nearer = appearance_change(image, ref, valid, classes, both)
+    assert np.median(transferred[kept]) > 0.5  # a hue the transfer made up
+    assert nearer[kept].max() < 0.1
+    assert nearer[hedge].min() > 0.5 and transferred[hedge].min() > 0.5
+
+
 def test_no_surface_and_unchecked_classes_give_zero():
     ref, classes = _scene()
     image = np.zeros_like(ref)

@@ -170,6 +170,9 @@ def test_the_results_hash_covers_exactly_what_changes_results():
     # inferred roles, version 2, and the texture cue's foreshortening test; 7fee81a419188dbe
     # before that, from the eighth round; 55a05b5c9150e8fc before that)
     assert base.results_hash() == "13478e666017c0eb"
+    # the thirty-seventh round's switch, left off: on, it is hashed
+    both_colours = AppearanceParams(raw_reference=True)
+    assert Config(DetectParams(appearance=both_colours)).results_hash() == "89b01ee6a0c2feba"
     # dark towards black as before: the thirty-fifth round's hash holds
     to_black = AppearanceParams(dark_grey=False)
     assert Config(DetectParams(appearance=to_black)).results_hash() == "602513b9b3dede40"

@@ -28,6 +28,13 @@ compared after
    the chromaticity of dark pixels from noise by drawing it towards grey
    (``AppearanceParams.dark_grey``; ``rgb / (R + G + B + ε)`` before, which drew it towards
    0, so that a dark colour differed from every lit one in chroma).
+3. optionally, **the nearer of two references** (``AppearanceParams.raw_reference``, off by
+   default): ``A_p`` is the smaller of the distances to the transferred colour and to the
+   colour as the cloud stored it. The transfer is fitted to the whole view's means and
+   spreads; where they differ much from the cloud's, its offset takes a dark channel to 0
+   and makes up a hue (a black railing seen against a bright street became cyan). On, it
+   halves some false alarms and loses the removed objects that were found only through
+   such a made-up hue (docs/TUNING.md, thirty-seventh round).
 
 It is checked on the **inventory classes** (poles, signs, railings, furniture), over their
 footprint with see-through gaps closed (a railing's bars are a few pixels wide; the hedge
@@ -338,7 +345,10 @@ def appearance_change(
     if checked.any():
         luts = transfer_luts(reference, image, valid, params.transfer)
         ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
-        out[checked] = reference_distance(image[checked], ref, luts, params)
+        distance = reference_distance(image[checked], ref, luts, params)
+        if params.raw_reference:  # the stored colour as well: the transfer can make up a hue
+            np.minimum(distance, colour_distance(image[checked], ref, params), out=distance)
+        out[checked] = distance
     if hued is not None and hued.any():
         # no brightness term here, so darkness stays a colour of its own (ε on the sum): a
         # dark bench before a lit plinth differs from it in nothing else
