@@ -695,8 +695,9 @@ def _best_ncc_in(
     shift (:func:`_best_over_shifts`) sums the six products the NCC needs (1, a, a², b, b², ab
     over the pixels valid in both) over each window and keeps the best NCC. The same numbers
     as :func:`local_ncc` shift by shift (up to float32 rounding), without its dozen full-size
-    temporaries, and to the bit those of the products, OpenCV box filters and NCC passes it
-    replaced at half their time (docs/BENCHMARKS.md)."""
+    temporaries; and those of the products, OpenCV box filters and NCC passes it replaced, to
+    the bit on every case measured (float64 sums added in another order could differ in a
+    last float32 rounding), at half their time (docs/BENCHMARKS.md)."""
     a = np.ascontiguousarray(a, np.float32)
     b = np.ascontiguousarray(b, np.float32)
     valid = np.ascontiguousarray(valid, np.bool_)
