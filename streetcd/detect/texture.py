@@ -777,29 +777,12 @@ def _keep_best_in_row(
     ys = y - dy
     s0 = s1 = s2 = s3 = s4 = s5 = 0.0
     for x in range(min(after, w)):
-        s0 += columns[0, x]
-        s1 += columns[1, x]
-        s2 += columns[2, x]
-        s3 += columns[3, x]
-        s4 += columns[4, x]
-        s5 += columns[5, x]
+        s0, s1, s2, s3, s4, s5 = _swept(s0, s1, s2, s3, s4, s5, columns, x, 1.0)
     for x in range(w):
         if x + after < w:
-            xa = x + after
-            s0 += columns[0, xa]
-            s1 += columns[1, xa]
-            s2 += columns[2, xa]
-            s3 += columns[3, xa]
-            s4 += columns[4, xa]
-            s5 += columns[5, xa]
+            s0, s1, s2, s3, s4, s5 = _swept(s0, s1, s2, s3, s4, s5, columns, x + after, 1.0)
         if x - before - 1 >= 0:
-            xb = x - before - 1
-            s0 -= columns[0, xb]
-            s1 -= columns[1, xb]
-            s2 -= columns[2, xb]
-            s3 -= columns[3, xb]
-            s4 -= columns[4, xb]
-            s5 -= columns[5, xb]
+            s0, s1, s2, s3, s4, s5 = _swept(s0, s1, s2, s3, s4, s5, columns, x - before - 1, -1.0)
         xs = x - dx
         if not (valid[y, x] and 0 <= ys < h and 0 <= xs < w and valid[ys, xs]):
             continue
@@ -816,3 +799,18 @@ def _keep_best_in_row(
         any_textured[y, x] = True
         if ncc > best[y, x]:
             best[y, x] = ncc
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _swept(s0, s1, s2, s3, s4, s5, columns, x, sign):  # pragma: no cover - numba
+    """The six window sums with column ``x`` of ``columns`` (6, W) added (``sign`` 1.0) or
+    taken away (−1.0): scalars, not an array of six, which stayed in memory (half again the
+    time)."""
+    return (
+        s0 + sign * columns[0, x],
+        s1 + sign * columns[1, x],
+        s2 + sign * columns[2, x],
+        s3 + sign * columns[3, x],
+        s4 + sign * columns[4, x],
+        s5 + sign * columns[5, x],
+    )
