@@ -345,9 +345,10 @@ def appearance_change(
     if checked.any():
         luts = transfer_luts(reference, image, valid, params.transfer)
         ref = fill_nearest(reference, valid, checked, close_px)[checked]  # (N, 3) where checked
-        distance = reference_distance(image[checked], ref, luts, params)
+        seen = image[checked]  # (N, 3)
+        distance = reference_distance(seen, ref, luts, params)
         if params.raw_reference:  # the stored colour as well: the transfer can make up a hue
-            np.minimum(distance, colour_distance(image[checked], ref, params), out=distance)
+            np.minimum(distance, colour_distance(seen, ref, params), out=distance)
         out[checked] = distance
     if hued is not None and hued.any():
         # no brightness term here, so darkness stays a colour of its own (ε on the sum): a
